@@ -1,0 +1,90 @@
+"""The exact solver against the HiGHS MILP reference, on real optima."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+
+from worker import synthetic
+from worker.exact import exact_pixels
+from worker.milp import MilpSolver
+from worker.problem import REL_TOL, make_thresholds, slabs, usable
+
+
+@dataclass(frozen=True)
+class Case:
+    scene: str
+    k: int
+    eps: float = 1.0
+    noise: float = 0.0
+    pixels: int = 160
+
+
+CASES = [
+    Case(scene, k)
+    for scene in ("sphere", "bump")
+    for k in (4, 12, 24)
+] + [Case("sphere", 12, eps=4.0, noise=2.0), Case("bump", 24, eps=3.0, noise=1.5)]
+
+
+def _pixels(case: Case) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    make = synthetic.sphere if case.scene == "sphere" else synthetic.bump_scene
+    sc = make(case.k, 40, noise=case.noise, seed=case.k)
+    th = make_thresholds(case.k, case.eps, saturation=sc.saturation)
+    I = sc.images[:, sc.mask].T
+    V = usable(sc.images, th)[:, sc.mask].T
+    rows = np.flatnonzero(V.sum(axis=1) >= 3)
+    pick = rows[np.linspace(0, rows.size - 1, case.pixels).astype(int)]
+    return I[pick], V[pick], sc.lights
+
+
+def _assert_feasible(I, V, L, eps, point, inl, tol_rel):
+    """Every claimed inlier lies in its slab at the returned point; none is unusable."""
+    a, b = slabs(I, eps)
+    v = point @ L.T
+    tol = tol_rel * np.where(V, b, 0).max(axis=1, keepdims=True)
+    inside = (v >= a - tol) & (v <= b + tol)
+    assert not (inl & ~V).any(), "an unusable image was counted as an inlier"
+    assert (inside | ~inl).all(), "a claimed inlier violates its slab at the solver's point"
+    np.testing.assert_array_equal(inl, inside & V)
+
+
+@pytest.mark.parametrize("case", CASES, ids=lambda c: f"{c.scene}-k{c.k}-eps{c.eps}-noise{c.noise}")
+def test_exact_matches_milp_optimum(case: Case) -> None:
+    I, V, L = _pixels(case)
+    pt, inl, cnt, _, cert = exact_pixels(I, V, L, case.eps, 10.0, 10**7)
+    mpt, minl, mcnt, mcert, stats = MilpSolver(L, time_limit=60).solve_pixels(I, V, case.eps, 10.0)
+    assert cert.all() and mcert.all(), "both solvers must prove optimality here"
+    np.testing.assert_array_equal(stats.claimed, mcnt)  # HiGHS's claimed inliers re-check
+    np.testing.assert_array_equal(cnt, mcnt)
+    _assert_feasible(I, V, L, case.eps, pt, inl, REL_TOL)
+    _assert_feasible(I, V, L, case.eps, mpt, minl, 1e-6)
+    # the sample is not trivial: some pixels have outliers among usable images
+    assert (cnt < V.sum(axis=1)).sum() >= 5
+
+
+def test_random_arrangements_match_milp() -> None:
+    """Random lights over the whole upper hemisphere and random outliers."""
+    rng = np.random.default_rng(7)
+    for trial in range(12):
+        k = int(rng.integers(4, 30))
+        L = rng.normal(size=(k, 3))
+        L[:, 2] = np.abs(L[:, 2]) + 0.1
+        L /= np.linalg.norm(L, axis=1, keepdims=True)
+        n_true = rng.normal(size=(25, 3)) * 40 + np.array([0, 0, 120])
+        I = n_true @ L.T + rng.normal(0, 0.7, size=(25, k))
+        out = rng.random((25, k)) < 0.3
+        I[out] += rng.uniform(-80, 120, size=out.sum())
+        I = np.clip(I, 0, None)
+        eps = float(rng.uniform(0.5, 3))
+        th = make_thresholds(k, eps)
+        V = usable(I.T, th).T
+        keep = V.sum(axis=1) >= 3
+        I, V = I[keep], V[keep]
+        pt, inl, cnt, _, cert = exact_pixels(I, V, L, eps, 10.0, 10**7)
+        _, _, mcnt, mcert, _ = MilpSolver(L, time_limit=60).solve_pixels(I, V, eps, 10.0)
+        assert cert.all() and mcert.all()
+        np.testing.assert_array_equal(cnt, mcnt, err_msg=f"trial {trial}")
+        _assert_feasible(I, V, L, eps, pt, inl, REL_TOL)

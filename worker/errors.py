@@ -1,0 +1,41 @@
+"""The one error hierarchy of maxfs-ps.
+
+The root subclasses :class:`ValueError`; each leaf also subclasses the builtin
+that matches its meaning (a "not found" error is also a :class:`LookupError`),
+so callers that only know builtins still catch the right thing. ``service``
+maps each class to one HTTP status.
+"""
+
+from __future__ import annotations
+
+
+class MaxfsError(ValueError):
+    """Root of every error raised on purpose by maxfs-ps."""
+
+
+class InvalidInputError(MaxfsError):
+    """Input data has the wrong shape, type, range or content."""
+
+
+class DatasetError(InvalidInputError):
+    """An input folder cannot be read as a photometric stereo dataset."""
+
+
+class NotFoundError(MaxfsError, LookupError):
+    """A job, array or file that was asked for does not exist."""
+
+
+class ConflictError(MaxfsError):
+    """The request does not fit the current state (e.g. starting a job twice)."""
+
+
+class StoreError(MaxfsError, OSError):
+    """The job store is missing, corrupt, or was written with other parameters."""
+
+
+class SolverError(MaxfsError, RuntimeError):
+    """A solver failed in a way that is not the input's fault."""
+
+
+class JobCancelledError(MaxfsError):
+    """A job was cancelled while it was running."""
