@@ -39,3 +39,7 @@ class SolverError(MaxfsError, RuntimeError):
 
 class JobCancelledError(MaxfsError):
     """A job was cancelled while it was running."""
+
+
+class PayloadTooLargeError(InvalidInputError):
+    """A request body is larger than allowed or than the job expects."""

@@ -12,6 +12,7 @@ Example
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from enum import StrEnum
 
@@ -23,12 +24,12 @@ from worker.exact import exact_pixels
 from worker.lstsq import channel_albedo, normal_albedo, refit
 from worker.milp import MilpSolver
 from worker.noise import estimate_eps
+from worker.observations import ObservationModel
 from worker.problem import (
     DEFAULT_BOX_FACTOR,
     Thresholds,
     check_lights,
     make_thresholds,
-    saturation_vector,
     usable,
 )
 from worker.tiles import DEFAULT_TILE, tiles
@@ -71,7 +72,6 @@ class Solution:
     inliers: NDArray[np.bool_]  # (k, H, W)
     inlier_count: NDArray[np.uint16]  # (H, W)
     optimal: NDArray[np.bool_]  # (H, W)
-    point: NDArray[np.float64]  # (H, W, 3)
     eps: float  # the eps used (estimated when eps="auto")
 
 
@@ -83,6 +83,7 @@ def solve_pixels(
     *,
     rgb: NDArray[np.floating] | None = None,
     active: NDArray[np.bool_] | None = None,
+    outlier: NDArray[np.bool_] | None = None,
     max_nodes: int = DEFAULT_MAX_NODES,
     milp_time_limit: float = DEFAULT_MILP_TIME_LIMIT,
 ) -> PixelResult:
@@ -102,6 +103,9 @@ def solve_pixels(
         Optional (P, k, C) colour intensities for per-channel albedo.
     active
         Optional (P,) bool; inactive (masked) pixels are skipped and cost nothing.
+    outlier
+        Optional (P, k) bool: observations known to be unusable (e.g. saturated in
+        any colour channel), on top of the thresholds.
     max_nodes
         Exact solver's per-pixel budget; a pixel that exhausts it is solved by the
         MILP with ``milp_time_limit``; if that stops early too, ``optimal`` is False.
@@ -111,6 +115,8 @@ def solve_pixels(
     P, k = I.shape
     act = np.ones(P, dtype=bool) if active is None else np.asarray(active, dtype=bool)
     valid = usable(I.T, th).T & act[:, None]
+    if outlier is not None:
+        valid &= ~outlier
     nodes = np.zeros(P, dtype=np.int64)
     if solver is Solver.L2:
         inl = np.isfinite(I) & act[:, None]
@@ -150,31 +156,84 @@ def solve_pixels(
     return PixelResult(normal, albedo, albedo_rgb, inl, count, optimal, point, nodes)
 
 
-def to_grey(images: NDArray[np.floating]) -> NDArray[np.float64]:
-    """(k, H, W, C) colour to (k, H, W) grey as (R + G + B) / 3; grey passes through."""
-    arr = np.asarray(images, dtype=np.float64)
-    return arr.mean(axis=-1) if arr.ndim == 4 else arr
-
-
-def resolve_eps(
-    eps: float | str,
-    grey: NDArray[np.float64],
+def estimate_job_eps(
+    read: Callable[[NDArray[np.intp], NDArray[np.intp]], NDArray],
     L: NDArray[np.float64],
-    saturation: NDArray[np.float64],
+    obs: ObservationModel,
     mask: NDArray[np.bool_] | None,
-    integer_valued: bool,
+    shape: tuple[int, int],
+    request: str = "auto",
 ) -> float:
-    """A number for ``eps``; ``"auto"`` estimates it (:func:`worker.noise.estimate_eps`)."""
-    if isinstance(eps, str):
-        if eps != "auto":
-            raise InvalidInputError(f"eps must be a positive number or 'auto', got {eps!r}")
-        k = grey.shape[0]
-        I = grey.reshape(k, -1).T
-        ok = np.isfinite(I) & (I > 0) & (I < saturation[None, :])
-        if mask is not None:
-            ok &= mask.reshape(-1)[:, None]
-        return estimate_eps(I, ok, L, integer_valued=integer_valued)
-    return float(eps)
+    """Estimate eps from a fixed sample of pixels (:func:`eps_sample`).
+
+    ``read(ys, xs)`` returns raw observations ``(k, n[, C])`` at those pixels, so
+    the in-process and the service paths see the same sample.
+    """
+    if request != "auto":
+        raise InvalidInputError(f"eps must be a positive number or 'auto', got {request!r}")
+    ys, xs = eps_sample(shape, mask)
+    grey, _, saturated = obs.prepare(read(ys, xs))
+    ok = np.isfinite(grey) & (grey > 0) & ~saturated
+    return estimate_eps(grey, ok, L, integer_valued=obs.integer_valued)
+
+
+def eps_sample(
+    shape: tuple[int, int], mask: NDArray[np.bool_] | None, n: int = 4096
+) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+    """Pixels used to estimate eps: every s-th pixel of the mask, at most ``n``."""
+    flat = np.flatnonzero(mask) if mask is not None else np.arange(shape[0] * shape[1])
+    stride = max(1, -(-flat.size // n))
+    ys, xs = np.unravel_index(flat[::stride], shape)
+    return ys.astype(np.intp), xs.astype(np.intp)
+
+
+@dataclass(frozen=True)
+class TileResult:
+    """Results for one tile of h x w pixels (see :class:`Solution`)."""
+
+    normal: NDArray[np.float32]  # (h, w, 3)
+    albedo: NDArray[np.float32]  # (h, w)
+    albedo_rgb: NDArray[np.float32] | None  # (h, w, C)
+    inliers: NDArray[np.bool_]  # (k, h, w)
+    inlier_count: NDArray[np.uint16]  # (h, w)
+    optimal: NDArray[np.bool_]  # (h, w)
+    nodes: int  # exact-solver search nodes spent on the tile
+
+
+def solve_tile(
+    raw: NDArray,
+    L: NDArray[np.float64],
+    obs: ObservationModel,
+    th: Thresholds,
+    solver: Solver | str,
+    mask: NDArray[np.bool_] | None = None,
+    *,
+    max_nodes: int = DEFAULT_MAX_NODES,
+    milp_time_limit: float = DEFAULT_MILP_TIME_LIMIT,
+) -> TileResult:
+    """Solve one tile of raw images ``(k, h, w[, C])``: the path every caller takes."""
+    k, h, w = raw.shape[:3]
+    grey, rgb, saturated = obs.prepare(raw)
+    r = solve_pixels(
+        grey,
+        L,
+        th,
+        solver,
+        rgb=rgb,
+        active=None if mask is None else mask.reshape(h * w),
+        outlier=saturated,
+        max_nodes=max_nodes,
+        milp_time_limit=milp_time_limit,
+    )
+    return TileResult(
+        normal=r.normal.reshape(h, w, 3),
+        albedo=r.albedo.reshape(h, w),
+        albedo_rgb=None if r.albedo_rgb is None else r.albedo_rgb.reshape(h, w, -1),
+        inliers=np.ascontiguousarray(r.inliers.T.reshape(k, h, w)),
+        inlier_count=r.count.reshape(h, w),
+        optimal=r.optimal.reshape(h, w),
+        nodes=int(r.nodes.sum()),
+    )
 
 
 def solve(
@@ -184,6 +243,7 @@ def solve(
     *,
     eps: float | str = 1.0,
     solver: Solver | str = Solver.EXACT,
+    intensities: ArrayLike | None = None,
     shadow: float | None = None,
     saturation: float | ArrayLike | None = None,
     box_factor: float = DEFAULT_BOX_FACTOR,
@@ -196,17 +256,20 @@ def solve(
     Parameters
     ----------
     images
-        (k, H, W) grey or (k, H, W, C) colour, already divided by light intensity.
-        Integer arrays are accepted; their dtype's maximum is then the default
-        saturation.
+        (k, H, W) grey or (k, H, W, C) colour. Integer arrays are raw sensor values:
+        a value at the dtype's maximum in any channel is saturated. Float arrays
+        are used as they are (see ``saturation``).
     lights
         (k, 3) unit light directions (x right, y up, z toward the camera).
     mask
         Optional (H, W) bool; False pixels are not solved.
     eps
         Tolerance of the Lambertian law, or ``"auto"`` to estimate it.
+    intensities
+        Optional light intensities, (k,) or (k, C); images are divided by them.
     shadow, saturation, box_factor
-        See :func:`worker.problem.make_thresholds`; ``shadow`` defaults to eps.
+        See :func:`worker.problem.make_thresholds`; ``shadow`` defaults to eps;
+        ``saturation`` (in units after division) applies to the grey value.
     tile
         Tile edge; pixels are solved tile by tile exactly as the service does, so
         results equal the service's for the same tile size (see :mod:`worker.tiles`).
@@ -218,16 +281,16 @@ def solve(
     if k < 3:
         raise InvalidInputError(f"photometric stereo needs at least 3 images, got {k}")
     L = check_lights(lights, k)
-    if saturation is None and np.issubdtype(arr.dtype, np.integer):
-        saturation = float(np.iinfo(arr.dtype).max)
-    integer_valued = bool(np.issubdtype(arr.dtype, np.integer))
-    grey = to_grey(arr)
+    obs = ObservationModel.for_input(arr.dtype, k, arr.shape[3] if arr.ndim == 4 else None, intensities)
     m = None
     if mask is not None:
         m = np.asarray(mask, dtype=bool)
         if m.shape != (H, W):
             raise InvalidInputError(f"mask has shape {m.shape}, images are {H} x {W}")
-    eps_v = resolve_eps(eps, grey, L, saturation_vector(k, saturation), m, integer_valued)
+    if isinstance(eps, str):
+        eps_v = estimate_job_eps(lambda ys, xs: arr[:, ys, xs], L, obs, m, (H, W), eps)
+    else:
+        eps_v = float(eps)
     th = make_thresholds(k, eps_v, shadow=shadow, saturation=saturation, box_factor=box_factor)
     C = arr.shape[3] if arr.ndim == 4 else None
     normal = np.empty((H, W, 3), np.float32)
@@ -236,32 +299,23 @@ def solve(
     inliers = np.empty((k, H, W), bool)
     count = np.empty((H, W), np.uint16)
     optimal = np.empty((H, W), bool)
-    point = np.empty((H, W, 3))
     for t in tiles(H, W, tile):
-        win = (slice(t.y0, t.y1), slice(t.x0, t.x1))
-        P = (t.y1 - t.y0) * (t.x1 - t.x0)
-        rgb = (
-            None
-            if C is None
-            else np.moveaxis(arr[:, win[0], win[1]].astype(np.float64).reshape(k, P, C), 0, 1)
-        )
-        r = solve_pixels(
-            grey[:, win[0], win[1]].reshape(k, P).T,
+        ys, xs = slice(t.y0, t.y1), slice(t.x0, t.x1)
+        r = solve_tile(
+            arr[:, ys, xs],
             L,
+            obs,
             th,
             solver,
-            rgb=rgb,
-            active=None if m is None else m[win].reshape(P),
+            None if m is None else m[ys, xs],
             max_nodes=max_nodes,
             milp_time_limit=milp_time_limit,
         )
-        shape = t.shape
-        normal[win] = r.normal.reshape(*shape, 3)
-        albedo[win] = r.albedo.reshape(shape)
+        normal[ys, xs] = r.normal
+        albedo[ys, xs] = r.albedo
         if albedo_rgb is not None and r.albedo_rgb is not None:
-            albedo_rgb[win] = r.albedo_rgb.reshape(*shape, C)
-        inliers[:, win[0], win[1]] = r.inliers.T.reshape(k, *shape)
-        count[win] = r.count.reshape(shape)
-        optimal[win] = r.optimal.reshape(shape)
-        point[win] = r.point.reshape(*shape, 3)
-    return Solution(normal, albedo, albedo_rgb, inliers, count, optimal, point, eps_v)
+            albedo_rgb[ys, xs] = r.albedo_rgb
+        inliers[:, ys, xs] = r.inliers
+        count[ys, xs] = r.inlier_count
+        optimal[ys, xs] = r.optimal
+    return Solution(normal, albedo, albedo_rgb, inliers, count, optimal, eps_v)

@@ -1,0 +1,1 @@
+"""The maxfs-ps service: HTTP API, Dask orchestration, CLI and client."""

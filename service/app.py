@@ -1,0 +1,295 @@
+"""The HTTP API (FastAPI). Build it with :func:`create_app`; serve it with uvicorn.
+
+Every error is JSON ``{"error": <class>, "detail": <what is wrong and how to fix it>}``
+with the status from :data:`STATUS` (one map from exception class to code).
+"""
+
+from __future__ import annotations
+
+from contextlib import asynccontextmanager
+from typing import Annotated, Any, Literal
+
+import numpy as np
+from fastapi import APIRouter, FastAPI, Path, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import FileResponse, JSONResponse, Response
+from pydantic import BaseModel, Field
+from starlette.background import BackgroundTask
+
+from service.jobs import JobManager, npy_bytes
+from service.previews import PREVIEWS, render
+from service.settings import Settings
+from storage.imageio import decode_bytes, encode_png
+from storage.layout import JobSpec
+from storage.params import JobParams
+from storage.records import JobRecord
+from worker.errors import (
+    ConflictError,
+    InvalidInputError,
+    MaxfsError,
+    NotFoundError,
+    PayloadTooLargeError,
+    StoreError,
+)
+
+#: Exception class -> HTTP status; the first matching base class wins.
+STATUS: list[tuple[type[Exception], int]] = [
+    (NotFoundError, 404),
+    (ConflictError, 409),
+    (PayloadTooLargeError, 413),
+    (InvalidInputError, 422),
+    (StoreError, 500),
+    (MaxfsError, 400),
+]
+
+
+class CreateJob(BaseModel):
+    """A new job: the stack's shape, the lights, and the solver parameters."""
+
+    k: int = Field(ge=3, description="number of images")
+    height: int = Field(ge=1)
+    width: int = Field(ge=1)
+    channels: Literal[1, 3] = Field(1, description="1 = grey, 3 = RGB")
+    dtype: Literal["uint8", "uint16", "float32"] = "uint8"
+    lights: list[list[float]] = Field(description="k unit light directions (x right, y up, z toward camera)")
+    intensities: list[float] | list[list[float]] | None = Field(
+        None, description="light intensities: k values, or k x channels"
+    )
+    eps: float | Literal["auto"] = "auto"
+    solver: Literal["exact", "milp", "l2"] = "exact"
+    tile: int = Field(128, ge=8, le=4096)
+    shadow: float | None = Field(None, ge=0, description="intensities <= this are shadows (default: eps)")
+    saturation: float | None = Field(None, gt=0, description="float input only: values >= this are saturated")
+    box_factor: float = Field(10.0, ge=1)
+    max_nodes: int = Field(200_000, ge=1)
+    milp_time_limit: float = Field(30.0, gt=0)
+
+
+def status_body(
+    rec: JobRecord, base: str, uploaded: int | None = None, k: int | None = None
+) -> dict[str, Any]:
+    body = rec.to_json()
+    frac = rec.tiles_done / rec.tiles_total if rec.tiles_total else 0.0
+    remaining = max(rec.pixels_total - rec.pixels_done, 0)
+    eta = remaining / rec.pixel_rate if rec.pixel_rate and rec.state.active else None
+    body["progress"] = {
+        "fraction": frac,
+        "tiles_done": rec.tiles_done,
+        "tiles_total": rec.tiles_total,
+        "pixels_done": rec.pixels_done,
+        "pixels_total": rec.pixels_total,
+        "pixels_per_second": rec.pixel_rate,
+        "eta_seconds": eta,
+        "certified_share": rec.certified_pixels / rec.pixels_done if rec.pixels_done else None,
+    }
+    if uploaded is not None:
+        body["uploaded"] = uploaded
+        body["k"] = k
+    body["links"] = {
+        "self": f"{base}/jobs/{rec.id}",
+        "start": f"{base}/jobs/{rec.id}/start",
+        "zip": f"{base}/jobs/{rec.id}/results.zip",
+    }
+    return body
+
+
+async def read_body(request: Request, limit: int) -> bytes:
+    """The request body, refusing (413) before reading when it is declared too large."""
+    declared = request.headers.get("content-length")
+    if declared is not None and declared.isdigit() and int(declared) > limit:
+        raise PayloadTooLargeError(
+            f"body of {declared} bytes is larger than the {limit} bytes this upload allows"
+        )
+    buf = bytearray()
+    async for chunk in request.stream():
+        buf += chunk
+        if len(buf) > limit:
+            raise PayloadTooLargeError(f"body is larger than the {limit} bytes this upload allows")
+    return bytes(buf)
+
+
+class JobRoutes:
+    """Routes for jobs, built around one :class:`JobManager`."""
+
+    def __init__(self, manager: JobManager, settings: Settings) -> None:
+        self.m = manager
+        self.s = settings
+        self.router = APIRouter(prefix="/jobs", tags=["jobs"])
+        r = self.router
+        r.add_api_route("", self.create, methods=["POST"], status_code=201)
+        r.add_api_route("", self.list, methods=["GET"])
+        r.add_api_route("/{job_id}", self.status, methods=["GET"])
+        r.add_api_route("/{job_id}", self.cancel, methods=["DELETE"])
+        r.add_api_route("/{job_id}/images/{index}", self.upload_image, methods=["PUT"])
+        r.add_api_route("/{job_id}/mask", self.upload_mask, methods=["PUT"])
+        r.add_api_route("/{job_id}/start", self.start, methods=["POST"], status_code=202)
+        r.add_api_route("/{job_id}/results.zip", self.zip, methods=["GET"])
+        r.add_api_route("/{job_id}/results/{name}.npy", self.result, methods=["GET"])
+        r.add_api_route("/{job_id}/previews/{name}.png", self.preview, methods=["GET"])
+
+    def _body(self, request: Request, job_id: str) -> dict[str, Any]:
+        rec = self.m.record(job_id)
+        store = self.m.store(job_id)
+        return status_body(rec, str(request.base_url).rstrip("/"), int(store.uploaded().sum()), store.spec.k)
+
+    async def create(self, req: CreateJob, request: Request) -> JSONResponse:
+        """Create a job (metadata only); upload images next."""
+        spec = JobSpec(
+            k=req.k,
+            height=req.height,
+            width=req.width,
+            channels=None if req.channels == 1 else req.channels,
+            dtype=req.dtype,
+            lights=np.asarray(req.lights, dtype=np.float64),
+            intensities=None if req.intensities is None else np.asarray(req.intensities, dtype=np.float64),
+        )
+        if np.asarray(req.lights).shape != (req.k, 3):
+            raise InvalidInputError(
+                f"lights must be {req.k} rows of 3 numbers, got shape {np.shape(req.lights)}"
+            )
+        params = JobParams.build(
+            eps=req.eps,
+            solver=req.solver,
+            tile=req.tile,
+            shadow=req.shadow,
+            saturation=req.saturation,
+            box_factor=req.box_factor,
+            max_nodes=req.max_nodes,
+            milp_time_limit=req.milp_time_limit,
+        )
+        rec = self.m.create(spec, params)
+        body = self._body(request, rec.id)
+        return JSONResponse(body, status_code=201, headers={"Location": body["links"]["self"]})
+
+    async def list(self, request: Request) -> list[dict[str, Any]]:
+        """All jobs, oldest first."""
+        base = str(request.base_url).rstrip("/")
+        return [status_body(r, base) for r in self.m.list()]
+
+    async def status(self, job_id: str, request: Request) -> dict[str, Any]:
+        """State, progress (tiles, pixels/s, ETA, certified share) and error reason of a job."""
+        return self._body(request, job_id)
+
+    async def upload_image(
+        self, job_id: str, index: Annotated[int, Path(ge=0)], request: Request
+    ) -> dict[str, Any]:
+        """Upload image ``index``: raw little-endian bytes (application/octet-stream) or PNG/TIFF.
+
+        Idempotent: uploading the same index again replaces it, until the job starts.
+        """
+        spec = self.m.store(job_id).spec
+        raw = request.headers.get("content-type", "application/octet-stream").startswith(
+            "application/octet-stream"
+        )
+        limit = spec.image_nbytes if raw else min(self.s.max_upload_bytes, 2 * spec.image_nbytes + (1 << 20))
+        data = await read_body(request, limit)
+        if raw:
+            if len(data) != spec.image_nbytes:
+                raise InvalidInputError(
+                    f"image {index}: got {len(data)} bytes, expected {spec.image_nbytes} "
+                    f"({' x '.join(map(str, spec.image_shape))} {spec.dtype}, little-endian, row-major)"
+                )
+            img = np.frombuffer(data, dtype=np.dtype(spec.dtype).newbyteorder("<")).reshape(spec.image_shape)
+            img = img.astype(spec.dtype)
+        else:
+            img = decode_bytes(data, what=f"image {index}")
+        await self.m.upload_image(job_id, index, img)
+        return self._body(request, job_id)
+
+    async def upload_mask(self, job_id: str, request: Request) -> dict[str, Any]:
+        """Upload the object mask: PNG (non-zero = object) or raw H*W bytes."""
+        spec = self.m.store(job_id).spec
+        data = await read_body(request, 2 * spec.height * spec.width + (1 << 20))
+        if request.headers.get("content-type", "").startswith("application/octet-stream"):
+            if len(data) != spec.height * spec.width:
+                raise InvalidInputError(f"mask: got {len(data)} bytes, expected {spec.height * spec.width}")
+            mask = np.frombuffer(data, dtype=np.uint8).reshape(spec.height, spec.width) > 0
+        else:
+            m = decode_bytes(data, what="mask")
+            mask = (m.max(axis=2) if m.ndim == 3 else m) > 0
+        await self.m.upload_mask(job_id, mask)
+        return self._body(request, job_id)
+
+    async def start(self, job_id: str, request: Request) -> dict[str, Any]:
+        """Start, or resume a cancelled/failed job from its finished tiles."""
+        await self.m.start_job(job_id)
+        body = self._body(request, job_id)
+        body["status_url"] = body["links"]["self"]
+        return body
+
+    async def cancel(self, job_id: str, request: Request) -> dict[str, Any]:
+        """Cancel: running tiles finish, nothing else starts; start again to resume."""
+        await self.m.cancel(job_id)
+        return self._body(request, job_id)
+
+    async def result(self, job_id: str, name: str) -> Response:
+        """One output array as NPY (normal, albedo, albedo_rgb, inliers, inlier_count, optimal, mask)."""
+        arr = self.m.store(job_id).read_output(name)
+        return Response(
+            npy_bytes(arr),
+            media_type="application/octet-stream",
+            headers={"Content-Disposition": f'attachment; filename="{name}.npy"'},
+        )
+
+    async def preview(self, job_id: str, name: str) -> Response:
+        """PNG preview: normal (paper colouring), albedo, inlier_count."""
+        if name not in PREVIEWS:
+            raise NotFoundError(f"no preview {name!r}; available: {', '.join(PREVIEWS)}")
+        store = self.m.store(job_id)
+        arrays = {n: store.read_output(n) for n in store.output_names()}
+        return Response(encode_png(render(name, arrays, store.spec.k)), media_type="image/png")
+
+    async def zip(self, job_id: str) -> FileResponse:
+        """The job's whole Zarr group as a zip archive."""
+        path = self.m.zip_store(job_id)
+        return FileResponse(
+            path,
+            media_type="application/zip",
+            filename=f"{job_id}.zarr.zip",
+            background=BackgroundTask(path.unlink, missing_ok=True),
+        )
+
+
+def _error_response(exc: Exception) -> JSONResponse:
+    code = next((c for cls, c in STATUS if isinstance(exc, cls)), 500)
+    return JSONResponse({"error": type(exc).__name__, "detail": str(exc)}, status_code=code)
+
+
+def create_app(settings: Settings | None = None, manager: JobManager | None = None) -> FastAPI:
+    """Build the application; the manager (and its Dask client) starts in the lifespan."""
+    settings = settings or Settings()
+    manager = manager or JobManager(settings)
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI):
+        await manager.start()
+        try:
+            yield
+        finally:
+            await manager.close()
+
+    app = FastAPI(
+        title="maxfs-ps",
+        version="0.1.0",
+        description="Robust photometric stereo by exact maximum feasible Lambertian subsystems.",
+        lifespan=lifespan,
+    )
+    app.state.manager = manager
+    app.include_router(JobRoutes(manager, settings).router)
+
+    @app.get("/health", tags=["service"])
+    async def health() -> dict[str, Any]:
+        return {"status": "ok", "jobs_running": len(manager.runs)}
+
+    @app.exception_handler(MaxfsError)
+    async def maxfs_error(_: Request, exc: MaxfsError) -> JSONResponse:
+        return _error_response(exc)
+
+    @app.exception_handler(RequestValidationError)
+    async def validation_error(_: Request, exc: RequestValidationError) -> JSONResponse:
+        problems = "; ".join(
+            f"{'.'.join(str(p) for p in e['loc'][1:]) or 'body'}: {e['msg']}" for e in exc.errors()
+        )
+        return JSONResponse({"error": "InvalidInputError", "detail": problems}, status_code=422)
+
+    return app

@@ -1,0 +1,224 @@
+"""The ``maxfs`` command line: run a folder locally, serve, and talk to a server."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+import httpx
+
+from service.settings import Settings
+from worker.errors import MaxfsError
+
+EXIT_USAGE = 2
+
+
+def _eps(value: str) -> float | str:
+    if value == "auto":
+        return value
+    try:
+        v = float(value)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"eps must be a positive number or 'auto', got {value!r}") from None
+    if not v > 0:
+        raise argparse.ArgumentTypeError(f"eps must be positive, got {value}")
+    return v
+
+
+def _solver_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--eps", type=_eps, default="auto", help="Lambertian tolerance, or auto (default: auto)")
+    p.add_argument("--solver", choices=["exact", "milp", "l2"], default="exact")
+    p.add_argument("--tile", type=int, default=None, help="tile edge in pixels (default 128)")
+
+
+def _params(args: argparse.Namespace) -> dict[str, Any]:
+    out: dict[str, Any] = {"eps": args.eps, "solver": args.solver}
+    if args.tile is not None:
+        out["tile"] = args.tile
+    return out
+
+
+def _progress(rec: Any) -> None:
+    from service.local import format_progress
+
+    end = "\n" if rec.state.value in ("done", "failed", "cancelled") else ""
+    print("\r" + format_progress(rec), end=end, file=sys.stderr, flush=True)
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    from service.local import ingest, run_store
+    from storage.datasets import load_folder
+    from storage.params import JobParams
+
+    settings = Settings()
+    ds = load_folder(args.folder)
+    params = JobParams.build(**_params(args))
+    print(f"{ds.name}: {ds.k} images of {ds.height} x {ds.width} ({ds.layout}, {ds.dtype})", file=sys.stderr)
+    store, note = ingest(ds, Path(args.output), params)
+    if note:
+        print(note, file=sys.stderr)
+    scheduler = args.scheduler if args.scheduler is not None else settings.scheduler
+    rec = run_store(
+        store.path, scheduler=scheduler, workers=args.workers or settings.workers, on_progress=_progress
+    )
+    if rec.state.value != "done":
+        print(f"maxfs: job {rec.state.value}: {rec.error or ''}".rstrip(": "), file=sys.stderr)
+        return 1
+    share = rec.certified_pixels / rec.pixels_done if rec.pixels_done else 1.0
+    took = (rec.finished_at or 0) - (rec.started_at or 0)
+    print(
+        f"done: {rec.pixels_done} pixels in {took:.1f} s, eps={rec.eps:.4g}, "
+        f"certified optimal: {share:.2%}; results in {store.path} (previews/ has PNGs)"
+    )
+    return 0
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from service.local import ingest, run_store
+    from storage.datasets import load_folder, write_npy_folder
+    from storage.layout import JobStore
+    from storage.params import JobParams
+    from worker import synthetic
+
+    out = Path(args.output)
+    scene = synthetic.bump_scene(args.k, args.size, noise=0.0)
+    folder = write_npy_folder(out / "input", scene.images.astype(np.uint8), scene.lights, scene.mask)
+    print(
+        f"demo: synthetic cast-shadow scene, {args.k} images of {args.size}^2, in {folder}", file=sys.stderr
+    )
+    store, note = ingest(load_folder(folder), out / "result.zarr", JobParams.build(eps=1.0, tile=args.tile))
+    if note:
+        print(note, file=sys.stderr)
+    rec = run_store(store.path, workers=args.workers or Settings().workers, on_progress=_progress)
+    if rec.state.value != "done":
+        print(f"maxfs: demo job {rec.state.value}: {rec.error}", file=sys.stderr)
+        return 1
+    normal = JobStore.open(store.path, mode="r").read_output("normal")
+    err = synthetic.angular_error_deg(normal, scene.normals)[scene.mask]
+    print(
+        f"demo done: mean angular error {np.nanmean(err):.3f} deg over {err.size} pixels; "
+        f"results in {store.path}"
+    )
+    return 0
+
+
+def cmd_serve(args: argparse.Namespace) -> int:
+    import uvicorn
+
+    from service.app import create_app
+
+    overrides = {
+        k: v
+        for k, v in {
+            "host": args.host,
+            "port": args.port,
+            "data_dir": args.data_dir,
+            "workers": args.workers,
+            "scheduler": args.scheduler,
+        }.items()
+        if v is not None
+    }
+    settings = Settings(**overrides)
+    uvicorn.run(create_app(settings), host=settings.host, port=settings.port, log_level="info")
+    return 0
+
+
+def _client(args: argparse.Namespace):
+    from service.client import MaxfsClient
+
+    return MaxfsClient(args.server or Settings().server)
+
+
+def cmd_submit(args: argparse.Namespace) -> int:
+    with _client(args) as c:
+        print(c.submit_folder(Path(args.folder), **_params(args)))
+    return 0
+
+
+def cmd_status(args: argparse.Namespace) -> int:
+    with _client(args) as c:
+        st = c.status(args.job_id)
+    p = st["progress"]
+    print(json.dumps({k: st[k] for k in ("id", "state", "error", "eps")} | {"progress": p}, indent=1))
+    return 0
+
+
+def cmd_fetch(args: argparse.Namespace) -> int:
+    with _client(args) as c:
+        print(c.fetch_zarr(args.job_id, Path(args.output)))
+    return 0
+
+
+def cmd_cancel(args: argparse.Namespace) -> int:
+    with _client(args) as c:
+        print(c.cancel(args.job_id)["state"])
+    return 0
+
+
+def parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="maxfs", description="Robust photometric stereo (exact Max-FS).")
+    sub = ap.add_subparsers(dest="command", required=True)
+    p = sub.add_parser("run", help="run a dataset folder on this machine")
+    p.add_argument("folder")
+    p.add_argument("-o", "--output", required=True, help="output job store (a .zarr folder)")
+    _solver_args(p)
+    p.add_argument("--scheduler", default=None, help="Dask scheduler address (default: embedded cluster)")
+    p.add_argument("--workers", type=int, default=None, help="embedded cluster worker processes")
+    p.set_defaults(fn=cmd_run)
+    p = sub.add_parser("demo", help="make a synthetic dataset and run it")
+    p.add_argument("-o", "--output", default="maxfs-demo")
+    p.add_argument("--k", type=int, default=24)
+    p.add_argument("--size", type=int, default=256)
+    p.add_argument("--tile", type=int, default=64)
+    p.add_argument("--workers", type=int, default=None)
+    p.set_defaults(fn=cmd_demo)
+    p = sub.add_parser("serve", help="run the HTTP server")
+    p.add_argument("--host", default=None)
+    p.add_argument("--port", type=int, default=None)
+    p.add_argument("--data-dir", default=None)
+    p.add_argument("--workers", type=int, default=None)
+    p.add_argument("--scheduler", default=None)
+    p.set_defaults(fn=cmd_serve)
+    for name, fn, help_ in (
+        ("status", cmd_status, "show a job's state and progress"),
+        ("cancel", cmd_cancel, "cancel a job"),
+    ):
+        p = sub.add_parser(name, help=help_)
+        p.add_argument("job_id")
+        p.add_argument("--server", default=None)
+        p.set_defaults(fn=fn)
+    p = sub.add_parser("submit", help="send a dataset folder to a server; prints the job id")
+    p.add_argument("folder")
+    p.add_argument("--server", default=None)
+    _solver_args(p)
+    p.set_defaults(fn=cmd_submit)
+    p = sub.add_parser("fetch", help="download a job's results as a Zarr folder")
+    p.add_argument("job_id")
+    p.add_argument("-o", "--output", required=True)
+    p.add_argument("--server", default=None)
+    p.set_defaults(fn=cmd_fetch)
+    return ap
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parser().parse_args(argv)
+    try:
+        return int(args.fn(args))
+    except MaxfsError as e:
+        print(f"maxfs: error: {e}", file=sys.stderr)
+        return EXIT_USAGE
+    except KeyboardInterrupt:
+        print("\nmaxfs: interrupted; run the same command again to resume", file=sys.stderr)
+        return 130
+    except httpx.HTTPError as e:
+        print(f"maxfs: error: cannot talk to the server ({e}); is `maxfs serve` running?", file=sys.stderr)
+        return EXIT_USAGE
+
+
+if __name__ == "__main__":
+    sys.exit(main())

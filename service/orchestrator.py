@@ -1,0 +1,150 @@
+"""Running a job's tiles on a Dask cluster, with progress, cancel and resume.
+
+One task per tile, with explicit keys that are never reused (a retry of the
+whole job gets a new nonce, so no stale result is picked up), ``retries`` for
+transient failures, and futures dropped as soon as their result is recorded.
+All state lives in the job store and record: restart the process and call
+:func:`run_job` again, and it continues from the finished tiles.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+import uuid
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+from distributed import Client, as_completed
+
+from storage.layout import JobStore
+from storage.records import JobRecord, JobState, load_record, save_record
+from worker.errors import JobCancelledError
+from worker.task import TileOutcome, estimate_store_eps, run_tile
+
+ProgressFn = Callable[[JobRecord], None]
+
+
+def _done_counts(store: JobStore) -> tuple[int, int, int, int]:
+    """(tiles done, active pixels done, active pixels total, certified pixels done)."""
+    mask = store.read_mask()
+    done = store.done_grid()
+    T = store.params.tile
+    done_px = np.kron(done, np.ones((T, T), dtype=bool))[: mask.shape[0], : mask.shape[1]]
+    px_done = int((mask & done_px).sum())
+    cert = int((np.asarray(store.group["optimal"][...]) & mask & done_px).sum()) if done.any() else 0
+    return int(done.sum()), px_done, int(mask.sum()), cert
+
+
+async def run_job(
+    client: Client,
+    job_dir: Path,
+    *,
+    on_progress: ProgressFn | None = None,
+    progress_interval: float = 1.0,
+    retries: int = 2,
+) -> JobRecord:
+    """Run (or resume) every unfinished tile of a job; return its final record.
+
+    The job ends ``done``, ``failed`` (with a reason) or ``cancelled`` (a cancel
+    flag was set in the store). If this coroutine itself is cancelled without a
+    cancel flag (server shutdown), the record keeps its active state so the next
+    start resumes it.
+    """
+    job_dir = Path(job_dir)
+    store = JobStore.open(job_dir)
+    rec = load_record(job_dir)
+    report = on_progress or (lambda r: None)
+
+    def save() -> None:
+        save_record(job_dir, rec)
+        report(rec)
+
+    store.clear_cancel()
+    rec.state, rec.error, rec.finished_at = JobState.QUEUED, None, None
+    save()
+    futures: dict[str, object] = {}
+    try:
+        params = store.params
+        if params.eps is None:
+            key = f"maxfs-eps-{rec.id}-{uuid.uuid4().hex[:8]}"
+            eps = await client.submit(estimate_store_eps, str(job_dir), key=key, pure=False, retries=retries)
+            params = params.with_eps(eps)
+            store.set_params(params)
+        rec.eps = params.eps
+        tiles = store.tiles()
+        done = store.done_grid().ravel()
+        rec.tiles_total = len(tiles)
+        rec.tiles_done, rec.pixels_done, rec.pixels_total, rec.certified_pixels = _done_counts(store)
+        rec.state, rec.started_at, rec.pixel_rate = JobState.RUNNING, time.time(), None
+        save()
+        digest, nonce = params.digest(), uuid.uuid4().hex[:8]
+        index_of: dict[str, int] = {}
+        for t in tiles:
+            if not done[t.index]:
+                key = f"maxfs-tile-{rec.id}-{t.index}-{nonce}"
+                futures[key] = client.submit(
+                    run_tile, str(job_dir), t.index, digest, key=key, pure=False, retries=retries
+                )
+                index_of[key] = t.index
+        t0, px_run, last = time.monotonic(), 0, 0.0
+        cancelled = False
+        async for fut in as_completed(list(futures.values())):
+            futures.pop(fut.key, None)
+            try:
+                out: TileOutcome = await fut
+            except Exception as e:  # a tile failed after its retries: the job fails
+                raise RuntimeError(
+                    f"tile {index_of.get(fut.key, '?')} failed: {type(e).__name__}: {e}"
+                ) from e
+            finally:
+                fut.release()
+            if out.status == "cancelled":
+                cancelled = True
+                continue
+            if out.status == "done":
+                rec.tiles_done += 1
+                rec.pixels_done += out.active
+                rec.certified_pixels += out.certified
+                px_run += out.active
+                rec.pixel_rate = px_run / max(time.monotonic() - t0, 1e-9)
+            now = time.monotonic()
+            if now - last >= progress_interval:
+                save()
+                last = now
+        if cancelled or store.cancel_requested:
+            raise JobCancelledError("cancelled by request")
+        if not store.done_grid().all():
+            raise RuntimeError(
+                "some tiles finished without their done marker; start the job again to finish it"
+            )
+        rec.tiles_done, rec.pixels_done, rec.pixels_total, rec.certified_pixels = _done_counts(store)
+        rec.state, rec.finished_at = JobState.DONE, time.time()
+        save()
+        return rec
+    except JobCancelledError:
+        await _drop(client, futures)
+        rec.state, rec.finished_at = JobState.CANCELLED, time.time()
+        save()
+        return rec
+    except asyncio.CancelledError:
+        await _drop(client, futures)
+        if store.cancel_requested:
+            rec.state, rec.finished_at = JobState.CANCELLED, time.time()
+        save()  # without a cancel flag: shutdown; the active state makes the next start resume
+        raise
+    except Exception as e:
+        await _drop(client, futures)
+        rec.state, rec.error, rec.finished_at = JobState.FAILED, str(e), time.time()
+        save()
+        return rec
+
+
+async def _drop(client: Client, futures: dict) -> None:
+    if futures:
+        try:
+            await client.cancel(list(futures.values()))
+        except Exception:  # the scheduler may be gone already; nothing to cancel then
+            pass
+        futures.clear()

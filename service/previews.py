@@ -1,0 +1,39 @@
+"""PNG previews of results, coloured as in the paper."""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+
+def normal_rgb(normal: NDArray[np.floating]) -> NDArray[np.uint8]:
+    """255 * [(nx + 1) / 2, (ny + 1) / 2, nz]; black where undefined."""
+    n = np.nan_to_num(np.asarray(normal, dtype=np.float64), nan=0.0)
+    rgb = np.stack([(n[..., 0] + 1) / 2, (n[..., 1] + 1) / 2, np.clip(n[..., 2], 0, 1)], axis=-1)
+    rgb[~np.isfinite(np.asarray(normal)[..., 0])] = 0.0
+    return np.clip(np.round(255 * rgb), 0, 255).astype(np.uint8)
+
+
+def scaled_grey(values: NDArray[np.floating], top: float | None = None) -> NDArray[np.uint8]:
+    """Linear 0..top to 0..255 (``top`` defaults to the 99.5th percentile of positive values)."""
+    v = np.nan_to_num(np.asarray(values, dtype=np.float64))
+    if top is None:
+        pos = v[v > 0]
+        top = float(np.percentile(pos, 99.5)) if pos.size else 1.0
+    return np.clip(np.round(255 * v / max(top, 1e-12)), 0, 255).astype(np.uint8)
+
+
+PREVIEWS = ("normal", "albedo", "inlier_count")
+
+
+def render(name: str, arrays: dict[str, NDArray], k: int) -> NDArray[np.uint8]:
+    """The preview image of one output (``normal``, ``albedo`` or ``inlier_count``)."""
+    if name == "normal":
+        return normal_rgb(arrays["normal"])
+    if name == "albedo":
+        if arrays.get("albedo_rgb") is not None:
+            return scaled_grey(arrays["albedo_rgb"])
+        return scaled_grey(arrays["albedo"])
+    if name == "inlier_count":
+        return scaled_grey(arrays["inlier_count"], top=float(k))
+    raise KeyError(name)

@@ -1,0 +1,235 @@
+"""Reading the input folders labs already have, one loader for all layouts.
+
+Layouts (detected in this order):
+
+* **DiLiGenT**: ``filenames.txt``, ``light_directions.txt`` (k x 3),
+  optional ``light_intensities.txt`` (k x 3 RGB), optional ``mask.png``;
+  8/16-bit PNG or TIFF, grey or RGB.
+* **NPY stack**: ``images.npy`` (k, H, W[, C]) plus ``lights.txt`` or
+  ``lights.npy`` (k x 3); optional ``mask.npy``/``mask.png`` and
+  ``intensities.txt``/``intensities.npy``.
+* **UW psm** (CSE 455 ``psmImages``): the object folder ``OBJ/`` whose parent
+  holds ``lights.txt`` (a count line, then k directions) and ``OBJ.txt`` (a count
+  line, then the image paths, then the mask path; paths may start with
+  ``psmImages/``); ``OBJ.mask.tga`` is a soft mask, thresholded at 128.
+
+Images are read one at a time (:meth:`Dataset.read`), never as a whole stack.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from storage.imageio import read_image
+from worker.errors import DatasetError, InvalidInputError
+from worker.problem import check_lights
+
+
+@dataclass(frozen=True)
+class Dataset:
+    """A photometric stereo dataset on disk, read lazily."""
+
+    name: str
+    layout: str
+    k: int
+    height: int
+    width: int
+    channels: int | None
+    dtype: str
+    lights: NDArray[np.float64]
+    intensities: NDArray[np.float64] | None
+    mask: NDArray[np.bool_] | None
+    _reader: Callable[[int], NDArray]
+
+    def read(self, i: int) -> NDArray:
+        """Image ``i`` as stored (uint8/uint16/float32; (H, W) or (H, W, 3))."""
+        img = self._reader(i)
+        expect = (
+            (self.height, self.width) if self.channels is None else (self.height, self.width, self.channels)
+        )
+        if img.shape != expect:
+            raise DatasetError(
+                f"{self.name}: image {i} has shape {img.shape} but image 0 has {expect}; "
+                "all images must have the same size"
+            )
+        if str(img.dtype) != self.dtype:
+            raise DatasetError(f"{self.name}: image {i} is {img.dtype} but image 0 is {self.dtype}")
+        return img
+
+
+def _read_matrix(path: Path, cols: int, what: str, count_line: bool = False) -> NDArray[np.float64]:
+    try:
+        lines = [ln for ln in path.read_text().split("\n") if ln.strip()]
+    except FileNotFoundError:
+        raise DatasetError(f"missing {what}: {path}") from None
+    if count_line:
+        try:
+            n = int(lines[0].split()[0])
+        except (IndexError, ValueError):
+            raise DatasetError(f"{path}: first line must be the number of rows") from None
+        lines = lines[1:]
+        if len(lines) != n:
+            raise DatasetError(f"{path}: says {n} rows but has {len(lines)}")
+    try:
+        arr = np.array([[float(v) for v in ln.replace(",", " ").split()] for ln in lines])
+    except ValueError as e:
+        raise DatasetError(f"{path}: not a table of numbers ({e})") from None
+    if arr.ndim != 2 or arr.shape[1] != cols:
+        raise DatasetError(f"{path}: expected {cols} numbers per line, got shape {arr.shape}")
+    return arr
+
+
+def _lights(arr: NDArray[np.float64], k: int, where: Path) -> NDArray[np.float64]:
+    if arr.shape[0] != k:
+        raise DatasetError(f"{where}: {arr.shape[0]} light directions for {k} images; give one per image")
+    try:
+        return check_lights(arr, k)
+    except InvalidInputError as e:
+        raise DatasetError(f"{where}: {e}") from None
+
+
+def _mask_from(path: Path) -> NDArray[np.bool_]:
+    m = read_image(path)
+    if m.ndim == 3:
+        m = m.max(axis=2)
+    thresh = 0.5 if m.dtype == np.float32 else np.iinfo(m.dtype).max / 2
+    return m > thresh
+
+
+def _probe(name: str, layout: str, k: int, reader: Callable[[int], NDArray], **kw) -> Dataset:
+    first = reader(0)
+    h, w = first.shape[:2]
+    ch = None if first.ndim == 2 else first.shape[2]
+    mask = kw.pop("mask", None)
+    if mask is not None and mask.shape != (h, w):
+        raise DatasetError(f"{name}: mask is {mask.shape[0]} x {mask.shape[1]} but images are {h} x {w}")
+    return Dataset(name, layout, k, h, w, ch, str(first.dtype), _reader=reader, mask=mask, **kw)
+
+
+def _diligent(folder: Path) -> Dataset:
+    names = [ln.strip() for ln in (folder / "filenames.txt").read_text().splitlines() if ln.strip()]
+    if len(names) < 3:
+        raise DatasetError(f"{folder}/filenames.txt lists {len(names)} images; at least 3 are needed")
+    paths = [folder / n for n in names]
+    missing = [str(p) for p in paths if not p.exists()]
+    if missing:
+        raise DatasetError(f"{folder}: {len(missing)} listed images are missing, e.g. {missing[0]}")
+    lights = _lights(_read_matrix(folder / "light_directions.txt", 3, "light directions"), len(paths), folder)
+    inten = None
+    if (folder / "light_intensities.txt").exists():
+        inten = _read_matrix(folder / "light_intensities.txt", 3, "light intensities")
+        if inten.shape[0] != len(paths):
+            raise DatasetError(f"{folder}: {inten.shape[0]} light intensities for {len(paths)} images")
+    mask = _mask_from(folder / "mask.png") if (folder / "mask.png").exists() else None
+    ds = _probe(
+        folder.name,
+        "diligent",
+        len(paths),
+        lambda i: read_image(paths[i]),
+        lights=lights,
+        intensities=inten,
+        mask=mask,
+    )
+    if inten is not None and ds.channels is None:
+        # grey images with RGB intensities: use their mean
+        ds = Dataset(**{**ds.__dict__, "intensities": inten.mean(axis=1, keepdims=True)})
+    return ds
+
+
+def _npy(folder: Path) -> Dataset:
+    try:
+        stack = np.load(folder / "images.npy", mmap_mode="r")
+    except ValueError as e:
+        raise DatasetError(f"{folder}/images.npy is not a readable NPY file: {e}") from None
+    if stack.ndim not in (3, 4) or (stack.ndim == 4 and stack.shape[3] != 3):
+        raise DatasetError(f"{folder}/images.npy must be (k, H, W) or (k, H, W, 3), got {stack.shape}")
+    if str(stack.dtype) not in ("uint8", "uint16", "float32"):
+        raise DatasetError(f"{folder}/images.npy has dtype {stack.dtype}; use uint8, uint16 or float32")
+    k = stack.shape[0]
+    if (folder / "lights.npy").exists():
+        raw = np.load(folder / "lights.npy").astype(np.float64)
+    else:
+        raw = _read_matrix(folder / "lights.txt", 3, "light directions")
+    lights = _lights(raw, k, folder)
+    inten = None
+    for nm in ("intensities.npy", "intensities.txt"):
+        p = folder / nm
+        if p.exists():
+            inten = np.load(p) if nm.endswith(".npy") else np.loadtxt(p, ndmin=2)
+    mask = None
+    if (folder / "mask.npy").exists():
+        mask = np.load(folder / "mask.npy").astype(bool)
+    elif (folder / "mask.png").exists():
+        mask = _mask_from(folder / "mask.png")
+    return _probe(
+        folder.name,
+        "npy",
+        k,
+        lambda i: np.ascontiguousarray(stack[i]),
+        lights=lights,
+        intensities=inten,
+        mask=mask,
+    )
+
+
+def _uw(folder: Path) -> Dataset:
+    root = folder.parent
+    listing = root / f"{folder.name}.txt"
+    lines = [ln.strip() for ln in listing.read_text().splitlines() if ln.strip()]
+    try:
+        k = int(lines[0])
+    except (IndexError, ValueError):
+        raise DatasetError(f"{listing}: first line must be the number of images") from None
+    entries = lines[1:]
+    if len(entries) < k:
+        raise DatasetError(f"{listing}: says {k} images but lists {len(entries)} paths")
+
+    def resolve(p: str) -> Path:
+        parts = Path(p).parts
+        rel = Path(*parts[1:]) if parts and parts[0] == "psmImages" else Path(p)
+        return root / rel
+
+    paths = [resolve(p) for p in entries[:k]]
+    missing = [str(p) for p in paths if not p.exists()]
+    if missing:
+        raise DatasetError(f"{listing}: {len(missing)} listed images are missing, e.g. {missing[0]}")
+    lights = _lights(_read_matrix(root / "lights.txt", 3, "light directions", count_line=True), k, root)
+    mask_path = resolve(entries[k]) if len(entries) > k else folder / f"{folder.name}.mask.tga"
+    mask = _mask_from(mask_path) if mask_path.exists() else None
+    return _probe(
+        folder.name, "uw-psm", k, lambda i: read_image(paths[i]), lights=lights, intensities=None, mask=mask
+    )
+
+
+def load_folder(folder: Path | str) -> Dataset:
+    """Open a dataset folder of any supported layout (see the module docstring)."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise DatasetError(f"{folder} is not a folder; give the folder that holds the images")
+    if (folder / "filenames.txt").exists():
+        return _diligent(folder)
+    if (folder / "images.npy").exists():
+        return _npy(folder)
+    if (folder.parent / "lights.txt").exists() and (folder.parent / f"{folder.name}.txt").exists():
+        return _uw(folder)
+    raise DatasetError(
+        f"{folder} is not a recognised dataset: expected filenames.txt + light_directions.txt (DiLiGenT), "
+        f"images.npy + lights.txt (NPY stack), or a UW psm object folder with ../lights.txt and "
+        f"../{folder.name}.txt"
+    )
+
+
+def write_npy_folder(folder: Path, images: NDArray, lights: NDArray, mask: NDArray | None = None) -> Path:
+    """Write a dataset in the NPY-stack layout (used by ``maxfs demo`` and tests)."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    np.save(folder / "images.npy", images)
+    np.savetxt(folder / "lights.txt", np.asarray(lights, dtype=np.float64))
+    if mask is not None:
+        np.save(folder / "mask.npy", np.asarray(mask, dtype=bool))
+    return folder

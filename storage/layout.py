@@ -1,0 +1,289 @@
+"""The Zarr v3 job store: one directory per job, every array created up front.
+
+Layout (root group; ``T`` = tile edge, chunks are tile-aligned)::
+
+    images        (k, H, W[, C])  uint8|uint16|float32  chunks (1, T, T[, C])
+    uploaded      (k,)            bool                  chunks (1,)   set after images[i]
+    lights        (k, 3)          float64
+    intensities   (k, C|1)        float64
+    mask          (H, W)          bool                  chunks (T, T)
+    normal        (H, W, 3)       float32 (NaN fill)    chunks (T, T, 3)
+    albedo        (H, W)          float32
+    albedo_rgb    (H, W, C)       float32               colour input only
+    inliers       (k, H, W)       bool                  chunks (k, T, T)
+    inlier_count  (H, W)          uint16
+    optimal       (H, W)          bool
+    done          (ny, nx)        int32                 chunks (1, 1)
+
+A tile task writes whole chunks of the outputs, then ``done[ty, tx] =
+params.token()`` last. A tile counts as finished only if its marker equals the
+token of the *current* parameters, so a job re-run with other parameters never
+reuses stale tiles. The store is created once, by the service or CLI, with mode
+``w-``; everything after opens it ``r+``.
+
+Beside the arrays, the job directory holds ``maxfs-job.json`` (the record),
+``maxfs-runs.log`` (one line per tile execution) and ``maxfs-cancel`` (a flag
+file that makes tile tasks stop at the next tile boundary).
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import zarr
+from numpy.typing import NDArray
+
+from storage.params import JobParams
+from worker.errors import ConflictError, InvalidInputError, NotFoundError, StoreError
+from worker.observations import ObservationModel
+from worker.problem import check_lights
+from worker.solve import TileResult
+from worker.tiles import Tile, grid_shape, tiles
+
+FORMAT_VERSION = 1
+DTYPES = ("uint8", "uint16", "float32")
+RUNS_LOG = "maxfs-runs.log"
+CANCEL_FLAG = "maxfs-cancel"
+#: Output arrays a client may fetch.
+OUTPUTS = ("normal", "albedo", "albedo_rgb", "inliers", "inlier_count", "optimal", "mask")
+
+
+@dataclass(frozen=True)
+class JobSpec:
+    """Shape and metadata of a job's inputs."""
+
+    k: int
+    height: int
+    width: int
+    channels: int | None  # None = grey
+    dtype: str
+    lights: NDArray[np.float64]
+    intensities: NDArray[np.float64] | None = None
+
+    def validate(self) -> JobSpec:
+        if self.k < 3:
+            raise InvalidInputError(f"photometric stereo needs at least 3 images, got k={self.k}")
+        if self.height < 1 or self.width < 1:
+            raise InvalidInputError(f"image size must be positive, got {self.height} x {self.width}")
+        if self.channels not in (None, 3):
+            raise InvalidInputError(f"channels must be 1 (grey) or 3 (RGB), got {self.channels}")
+        if self.dtype not in DTYPES:
+            raise InvalidInputError(f"dtype must be one of {', '.join(DTYPES)}, got {self.dtype!r}")
+        lights = check_lights(self.lights, self.k)
+        obs = ObservationModel.for_input(np.dtype(self.dtype), self.k, self.channels, self.intensities)
+        return JobSpec(self.k, self.height, self.width, self.channels, self.dtype, lights, obs.intensities)
+
+    @property
+    def image_shape(self) -> tuple[int, ...]:
+        hw = (self.height, self.width)
+        return hw if self.channels is None else (*hw, self.channels)
+
+    @property
+    def image_nbytes(self) -> int:
+        return int(np.prod(self.image_shape)) * np.dtype(self.dtype).itemsize
+
+
+class JobStore:
+    """A job directory: its Zarr group plus record, run log and cancel flag."""
+
+    def __init__(self, path: Path, group: zarr.Group) -> None:
+        self.path = Path(path)
+        self.group = group
+        attrs = dict(group.attrs)
+        if attrs.get("maxfs_format") != FORMAT_VERSION:
+            raise StoreError(f"{path} is not a maxfs job store (format {attrs.get('maxfs_format')!r})")
+        self.spec = JobSpec(
+            k=attrs["k"],
+            height=attrs["height"],
+            width=attrs["width"],
+            channels=attrs["channels"],
+            dtype=attrs["dtype"],
+            lights=np.asarray(group["lights"][...]),
+            intensities=np.asarray(group["intensities"][...]),
+        )
+
+    # -- creation and opening ---------------------------------------------------------------
+    @classmethod
+    def create(cls, path: Path, spec: JobSpec, params: JobParams) -> JobStore:
+        """Create the job directory and every array. Fails if it already exists."""
+        spec = spec.validate()
+        path = Path(path)
+        if (path / "zarr.json").exists():
+            raise ConflictError(f"{path} already holds a job store; resume it instead of creating it")
+        path.mkdir(parents=True, exist_ok=True)
+        T = params.tile
+        k, H, W, C = spec.k, spec.height, spec.width, spec.channels
+        img_chunks = (1, min(T, H), min(T, W)) + (() if C is None else (C,))
+        try:
+            g = zarr.open_group(path, mode="w-", zarr_format=3)
+        except (zarr.errors.ContainsGroupError, zarr.errors.ContainsArrayError, FileExistsError):
+            raise ConflictError(f"{path} already holds a Zarr store") from None
+        tc = (min(T, H), min(T, W))
+        g.create_array(
+            "images", shape=(k, *spec.image_shape), chunks=img_chunks, dtype=spec.dtype, fill_value=0
+        )
+        g.create_array("uploaded", shape=(k,), chunks=(1,), dtype="bool", fill_value=False)
+        g.create_array("lights", data=spec.lights)
+        g.create_array("intensities", data=spec.intensities)
+        g.create_array("mask", shape=(H, W), chunks=tc, dtype="bool", fill_value=True)
+        g.create_array("normal", shape=(H, W, 3), chunks=(*tc, 3), dtype="float32", fill_value=np.nan)
+        g.create_array("albedo", shape=(H, W), chunks=tc, dtype="float32", fill_value=0.0)
+        if C is not None:
+            g.create_array("albedo_rgb", shape=(H, W, C), chunks=(*tc, C), dtype="float32", fill_value=0.0)
+        g.create_array("inliers", shape=(k, H, W), chunks=(k, *tc), dtype="bool", fill_value=False)
+        g.create_array("inlier_count", shape=(H, W), chunks=tc, dtype="uint16", fill_value=0)
+        g.create_array("optimal", shape=(H, W), chunks=tc, dtype="bool", fill_value=False)
+        g.create_array("done", shape=grid_shape(H, W, T), chunks=(1, 1), dtype="int32", fill_value=0)
+        # attrs last: a store without them is detected as incomplete on open
+        g.attrs.update(
+            {
+                "maxfs_format": FORMAT_VERSION,
+                "k": k,
+                "height": H,
+                "width": W,
+                "channels": C,
+                "dtype": spec.dtype,
+                "params": params.to_json(),
+                "params_hash": params.digest() if params.eps is not None else None,
+            }
+        )
+        return cls(path, g)
+
+    @classmethod
+    def open(cls, path: Path, mode: str = "r+") -> JobStore:
+        """Open an existing store (never truncates)."""
+        if mode not in ("r", "r+"):
+            raise ValueError("job stores are opened 'r' or 'r+' only")
+        path = Path(path)
+        if not (path / "zarr.json").exists():
+            raise NotFoundError(f"no job store at {path}")
+        try:
+            g = zarr.open_group(path, mode=mode, zarr_format=3)
+        except (FileNotFoundError, zarr.errors.GroupNotFoundError) as e:
+            raise NotFoundError(f"no job store at {path}: {e}") from None
+        except (ValueError, KeyError) as e:
+            raise StoreError(f"job store at {path} is unreadable: {e}") from None
+        try:
+            return cls(path, g)
+        except KeyError as e:
+            raise StoreError(f"job store at {path} is incomplete: missing {e}") from None
+
+    # -- parameters ---------------------------------------------------------------------------
+    @property
+    def params(self) -> JobParams:
+        return JobParams.from_json(dict(self.group.attrs["params"]))
+
+    def set_params(self, params: JobParams) -> None:
+        """Record (possibly new) parameters; tiles made with others stop counting as done."""
+        self.group.attrs.update(
+            {"params": params.to_json(), "params_hash": params.digest() if params.eps is not None else None}
+        )
+
+    @property
+    def observation_model(self) -> ObservationModel:
+        s = self.spec
+        return ObservationModel.for_input(np.dtype(s.dtype), s.k, s.channels, s.intensities)
+
+    # -- inputs -------------------------------------------------------------------------------
+    def write_image(self, i: int, image: NDArray[Any]) -> None:
+        """Store image ``i`` (whole chunks), then mark it uploaded. Idempotent."""
+        s = self.spec
+        if not 0 <= i < s.k:
+            raise NotFoundError(f"image index {i} is out of range; this job has images 0..{s.k - 1}")
+        if tuple(image.shape) != s.image_shape:
+            raise InvalidInputError(
+                f"image {i} has shape {tuple(image.shape)}, the job expects {s.image_shape}"
+            )
+        if image.dtype != np.dtype(s.dtype):
+            raise InvalidInputError(f"image {i} has dtype {image.dtype}, the job expects {s.dtype}")
+        self.group["images"][i] = image
+        self.group["uploaded"][i] = True
+
+    def uploaded(self) -> NDArray[np.bool_]:
+        return np.asarray(self.group["uploaded"][...])
+
+    def write_mask(self, mask: NDArray[np.bool_]) -> None:
+        s = self.spec
+        if mask.shape != (s.height, s.width):
+            raise InvalidInputError(
+                f"mask has shape {mask.shape}, the job's images are {s.height} x {s.width}"
+            )
+        self.group["mask"][...] = mask.astype(bool)
+
+    def read_mask(self) -> NDArray[np.bool_]:
+        return np.asarray(self.group["mask"][...])
+
+    # -- tiles --------------------------------------------------------------------------------
+    def tiles(self) -> list[Tile]:
+        s = self.spec
+        return list(tiles(s.height, s.width, self.params.tile))
+
+    def done_grid(self) -> NDArray[np.bool_]:
+        """Which tiles are finished with the current parameters."""
+        p = self.params
+        if p.eps is None:
+            return np.zeros(np.asarray(self.group["done"].shape), dtype=bool)
+        return np.asarray(self.group["done"][...]) == p.token()
+
+    def read_tile(self, t: Tile) -> tuple[NDArray[Any], NDArray[np.bool_]]:
+        """Raw images ``(k, h, w[, C])`` and mask ``(h, w)`` of one tile."""
+        ys, xs = slice(t.y0, t.y1), slice(t.x0, t.x1)
+        return np.asarray(self.group["images"][:, ys, xs]), np.asarray(self.group["mask"][ys, xs])
+
+    def write_tile(self, t: Tile, r: TileResult, token: int) -> None:
+        """Write a tile's outputs (whole chunks), then its done marker, last."""
+        ys, xs = slice(t.y0, t.y1), slice(t.x0, t.x1)
+        g = self.group
+        g["normal"][ys, xs] = r.normal
+        g["albedo"][ys, xs] = r.albedo
+        if r.albedo_rgb is not None and "albedo_rgb" in g:
+            g["albedo_rgb"][ys, xs] = r.albedo_rgb
+        g["inliers"][:, ys, xs] = r.inliers
+        g["inlier_count"][ys, xs] = r.inlier_count
+        g["optimal"][ys, xs] = r.optimal
+        g["done"][t.ty, t.tx] = token
+
+    def read_output(self, name: str) -> NDArray[Any]:
+        if name not in OUTPUTS or name not in self.group:
+            raise NotFoundError(f"no output array {name!r}; available: {', '.join(self.output_names())}")
+        return np.asarray(self.group[name][...])
+
+    def output_names(self) -> list[str]:
+        return [n for n in OUTPUTS if n in self.group]
+
+    # -- run log and cancel flag -----------------------------------------------------------------
+    def log_run(self, tile_index: int, outcome: str) -> None:
+        """Append one line per tile execution (O_APPEND: atomic for short lines)."""
+        line = f"{time.time():.3f} {os.getpid()} tile={tile_index} {outcome}\n".encode()
+        fd = os.open(self.path / RUNS_LOG, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+        try:
+            os.write(fd, line)
+        finally:
+            os.close(fd)
+
+    def run_counts(self) -> dict[int, int]:
+        """How many times each tile was computed (``done`` lines in the run log)."""
+        counts: dict[int, int] = {}
+        log = self.path / RUNS_LOG
+        if log.exists():
+            for line in log.read_text().splitlines():
+                parts = line.split()
+                if len(parts) == 4 and parts[3] == "done":
+                    t = int(parts[2].removeprefix("tile="))
+                    counts[t] = counts.get(t, 0) + 1
+        return counts
+
+    def request_cancel(self) -> None:
+        (self.path / CANCEL_FLAG).touch()
+
+    def clear_cancel(self) -> None:
+        (self.path / CANCEL_FLAG).unlink(missing_ok=True)
+
+    @property
+    def cancel_requested(self) -> bool:
+        return (self.path / CANCEL_FLAG).exists()

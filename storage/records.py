@@ -1,0 +1,97 @@
+"""Job records: the state a job is in, kept as a small JSON file per job.
+
+The Dask scheduler keeps nothing across restarts; these records (and the done
+markers in the Zarr store) are the truth. Writes are atomic (temp file + rename).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+import time
+from dataclasses import asdict, dataclass, field
+from enum import StrEnum
+from pathlib import Path
+from typing import Any
+
+from worker.errors import StoreError
+
+RECORD_NAME = "maxfs-job.json"
+
+
+class JobState(StrEnum):
+    """Life cycle of a job."""
+
+    CREATED = "created"  #: metadata stored, no image uploaded yet
+    UPLOADING = "uploading"  #: some images uploaded, not all
+    QUEUED = "queued"  #: started; waiting for workers (or eps estimation)
+    RUNNING = "running"  #: tiles are being computed
+    DONE = "done"  #: every tile finished; results complete
+    FAILED = "failed"  #: stopped by an error; ``error`` says why
+    CANCELLED = "cancelled"  #: stopped by the user; start again to resume
+
+    @property
+    def active(self) -> bool:
+        return self in (JobState.QUEUED, JobState.RUNNING)
+
+    @property
+    def accepts_uploads(self) -> bool:
+        return self in (JobState.CREATED, JobState.UPLOADING)
+
+
+@dataclass
+class JobRecord:
+    """Mutable facts about a job, owned by the process that runs it."""
+
+    id: str
+    state: JobState = JobState.CREATED
+    owner: str = "local"
+    created_at: float = field(default_factory=time.time)
+    updated_at: float = field(default_factory=time.time)
+    started_at: float | None = None
+    finished_at: float | None = None
+    error: str | None = None
+    tiles_total: int = 0
+    tiles_done: int = 0
+    pixels_total: int = 0
+    pixels_done: int = 0
+    certified_pixels: int = 0
+    solved_pixels: int = 0
+    pixel_rate: float | None = None  # pixels per second in this run
+    eps: float | None = None
+
+    def to_json(self) -> dict[str, Any]:
+        d = asdict(self)
+        d["state"] = self.state.value
+        return d
+
+    @classmethod
+    def from_json(cls, d: dict[str, Any]) -> JobRecord:
+        d = dict(d)
+        d["state"] = JobState(d["state"])
+        return cls(**d)
+
+
+def save_record(job_dir: Path, rec: JobRecord) -> None:
+    """Write the record atomically next to the store."""
+    rec.updated_at = time.time()
+    job_dir = Path(job_dir)
+    fd, tmp = tempfile.mkstemp(prefix=".maxfs-job-", dir=job_dir)
+    try:
+        with os.fdopen(fd, "w") as f:
+            json.dump(rec.to_json(), f, indent=1)
+        os.replace(tmp, job_dir / RECORD_NAME)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def load_record(job_dir: Path) -> JobRecord:
+    path = Path(job_dir) / RECORD_NAME
+    try:
+        return JobRecord.from_json(json.loads(path.read_text()))
+    except FileNotFoundError:
+        raise StoreError(f"{job_dir} has no job record ({RECORD_NAME})") from None
+    except (ValueError, TypeError, KeyError) as e:
+        raise StoreError(f"job record {path} is corrupt: {e}") from None

@@ -1,0 +1,95 @@
+"""Dask tasks: compute one tile of a job store, and estimate a job's eps.
+
+Tasks are idempotent: a tile whose done marker matches the current parameters
+is skipped, so a task that runs twice (a retry, a killed worker) costs nothing
+and changes nothing. HiGHS objects are built inside the task (not picklable).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from storage.layout import JobStore
+from worker.errors import StoreError
+from worker.problem import make_thresholds
+from worker.solve import estimate_job_eps, solve_tile
+
+
+@dataclass(frozen=True)
+class TileOutcome:
+    """What a tile task reports back to the orchestrator."""
+
+    index: int
+    status: str  # "done" | "skipped" (already done) | "cancelled"
+    pixels: int = 0  # pixels in the tile
+    active: int = 0  # pixels inside the mask
+    solved: int = 0  # pixels that got a normal
+    certified: int = 0  # active pixels whose optimum is proved
+    nodes: int = 0
+    seconds: float = 0.0
+
+
+def run_tile(job_dir: str, tile_index: int, params_hash: str) -> TileOutcome:
+    """Compute tile ``tile_index`` of the job at ``job_dir``; write outputs, then the done marker."""
+    store = JobStore.open(Path(job_dir))
+    params = store.params
+    if params.eps is None or params.digest() != params_hash:
+        raise StoreError(f"job parameters changed since tile {tile_index} was scheduled; restart the job")
+    t = store.tiles()[tile_index]
+    token = params.token()
+    if int(store.group["done"][t.ty, t.tx]) == token:
+        return TileOutcome(tile_index, "skipped")
+    if store.cancel_requested:
+        return TileOutcome(tile_index, "cancelled")
+    t0 = time.perf_counter()
+    raw, mask = store.read_tile(t)
+    spec = store.spec
+    th = make_thresholds(
+        spec.k, params.eps, shadow=params.shadow, saturation=params.saturation, box_factor=params.box_factor
+    )
+    res = solve_tile(
+        raw,
+        spec.lights,
+        store.observation_model,
+        th,
+        params.solver,
+        mask,
+        max_nodes=params.max_nodes,
+        milp_time_limit=params.milp_time_limit,
+    )
+    store.write_tile(t, res, token)
+    store.log_run(tile_index, "done")
+    return TileOutcome(
+        tile_index,
+        "done",
+        pixels=mask.size,
+        active=int(mask.sum()),
+        solved=int(np.isfinite(res.normal[..., 0]).sum()),
+        certified=int((res.optimal & mask).sum()),
+        nodes=res.nodes,
+        seconds=time.perf_counter() - t0,
+    )
+
+
+def estimate_store_eps(job_dir: str) -> float:
+    """eps="auto": estimate from the same pixel sample the in-process path uses."""
+    store = JobStore.open(Path(job_dir), mode="r")
+    spec = store.spec
+    images = store.group["images"]
+
+    def read(ys: np.ndarray, xs: np.ndarray) -> np.ndarray:
+        def at(i: int, c: int | None) -> np.ndarray:
+            coords = (np.full_like(ys, i), ys, xs) + (() if c is None else (np.full_like(ys, c),))
+            return np.asarray(images.get_coordinate_selection(coords))
+
+        if spec.channels is None:
+            return np.stack([at(i, None) for i in range(spec.k)])
+        return np.stack([np.stack([at(i, c) for c in range(spec.channels)], axis=-1) for i in range(spec.k)])
+
+    return estimate_job_eps(
+        read, spec.lights, store.observation_model, store.read_mask(), (spec.height, spec.width)
+    )
