@@ -20,7 +20,7 @@ import numpy as np
 from distributed import Client, LocalCluster
 from numpy.typing import NDArray
 
-from service.orchestrator import run_job
+from service.orchestrator import run_job, warm_workers
 from service.settings import Settings
 from storage.layout import JobSpec, JobStore
 from storage.params import JobParams
@@ -61,6 +61,7 @@ class JobManager:
                 asynchronous=True,
             )
             self.client = await Client(self.cluster, asynchronous=True)
+        await warm_workers(self.client)
         for job_dir in sorted(self.root.iterdir()):
             try:
                 rec = load_record(job_dir)

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 from distributed import Client, LocalCluster
 
-from service.orchestrator import ProgressFn, run_job
+from service.orchestrator import ProgressFn, run_job, warm_workers
 from service.previews import PREVIEWS, render
 from storage.datasets import Dataset
 from storage.imageio import encode_png
@@ -77,6 +77,7 @@ def ingest(ds: Dataset, out: Path, params: JobParams) -> tuple[JobStore, str]:
 async def _run(out: Path, scheduler: str, workers: int, on_progress: ProgressFn | None) -> JobRecord:
     if scheduler:
         async with Client(scheduler, asynchronous=True) as client:
+            await warm_workers(client)
             return await run_job(client, out, on_progress=on_progress)
     async with (
         LocalCluster(
@@ -89,6 +90,7 @@ async def _run(out: Path, scheduler: str, workers: int, on_progress: ProgressFn 
         ) as cluster,
         Client(cluster, asynchronous=True) as client,
     ):
+        await warm_workers(client)
         return await run_job(client, out, on_progress=on_progress)
 
 

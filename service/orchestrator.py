@@ -21,9 +21,14 @@ from distributed import Client, as_completed
 from storage.layout import JobStore
 from storage.records import JobRecord, JobState, load_record, save_record
 from worker.errors import JobCancelledError
-from worker.task import TileOutcome, estimate_store_eps, run_tile
+from worker.task import TileOutcome, estimate_store_eps, run_tile, warm_up
 
 ProgressFn = Callable[[JobRecord], None]
+
+
+async def warm_workers(client: Client) -> None:
+    """Load the solver kernels on every current worker (see :func:`worker.task.warm_up`)."""
+    await client.run(warm_up)
 
 
 def _done_counts(store: JobStore) -> tuple[int, int, int, int]:

@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from storage.imageio import read_image
+from storage.imageio import read_image as _decode_file
 from worker.errors import DatasetError, InvalidInputError
 from worker.problem import check_lights
 
@@ -60,6 +60,16 @@ class Dataset:
         if str(img.dtype) != self.dtype:
             raise DatasetError(f"{self.name}: image {i} is {img.dtype} but image 0 is {self.dtype}")
         return img
+
+
+def read_image(path: Path) -> NDArray:
+    """An image file of a dataset; unreadable files are :class:`DatasetError`."""
+    try:
+        return _decode_file(path)
+    except DatasetError:
+        raise
+    except InvalidInputError as e:
+        raise DatasetError(str(e)) from None
 
 
 def _read_matrix(path: Path, cols: int, what: str, count_line: bool = False) -> NDArray[np.float64]:

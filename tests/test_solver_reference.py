@@ -22,11 +22,10 @@ class Case:
     pixels: int = 160
 
 
-CASES = [
-    Case(scene, k)
-    for scene in ("sphere", "bump")
-    for k in (4, 12, 24)
-] + [Case("sphere", 12, eps=4.0, noise=2.0), Case("bump", 24, eps=3.0, noise=1.5)]
+CASES = [Case(scene, k) for scene in ("sphere", "bump") for k in (4, 12, 24)] + [
+    Case("sphere", 12, eps=4.0, noise=2.0),
+    Case("bump", 24, eps=3.0, noise=1.5),
+]
 
 
 def _pixels(case: Case) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -93,3 +93,15 @@ def estimate_store_eps(job_dir: str) -> float:
     return estimate_job_eps(
         read, spec.lights, store.observation_model, store.read_mask(), (spec.height, spec.width)
     )
+
+
+def warm_up() -> bool:
+    """Load the compiled solver kernels in this worker process (numba cache), so
+    the first tile of the first job does not pay for it. Run on every worker."""
+    from worker import synthetic
+    from worker.exact import exact_pixels
+
+    L = synthetic.lights_uniform(4)
+    I = np.array([[100.0, 90.0, 80.0, 0.0]])
+    exact_pixels(I, I > 0, L, 1.0, 10.0, 1000)
+    return True
