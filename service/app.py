@@ -15,6 +15,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse, JSONResponse, Response
 from pydantic import BaseModel, Field
 from starlette.background import BackgroundTask
+from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from service.jobs import JobManager, npy_bytes
 from service.previews import PREVIEWS, render
@@ -284,6 +285,15 @@ def create_app(settings: Settings | None = None, manager: JobManager | None = No
     @app.exception_handler(MaxfsError)
     async def maxfs_error(_: Request, exc: MaxfsError) -> JSONResponse:
         return _error_response(exc)
+
+    @app.exception_handler(StarletteHTTPException)
+    async def http_error(_: Request, exc: StarletteHTTPException) -> JSONResponse:
+        # routing errors (no such path or method) get the same JSON shape as ours
+        if exc.status_code == 404:
+            body = {"error": "NotFoundError", "detail": "no job or route here; see /docs for the API"}
+        else:
+            body = {"error": "HTTPError", "detail": str(exc.detail)}
+        return JSONResponse(body, status_code=exc.status_code)
 
     @app.exception_handler(RequestValidationError)
     async def validation_error(_: Request, exc: RequestValidationError) -> JSONResponse:

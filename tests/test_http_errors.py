@@ -1,0 +1,162 @@
+"""Bad requests to a real server: the status, the reason, and nothing stored changes."""
+
+from __future__ import annotations
+
+import hashlib
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from http.client import HTTPConnection
+from pathlib import Path
+from typing import Any
+
+import httpx
+import imagecodecs
+import numpy as np
+import pytest
+
+from tests.procs import Server
+from worker import synthetic
+
+K, H, W = 4, 8, 6
+LIGHTS = synthetic.lights_uniform(K).tolist()
+GOOD = {"k": K, "height": H, "width": W, "dtype": "uint8", "lights": LIGHTS, "eps": 1.0, "tile": 8}
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory: pytest.TempPathFactory):
+    tmp = tmp_path_factory.mktemp("http")
+    s = Server(tmp / "data", "", tmp, workers=1)
+    s.data = tmp / "data"
+    yield s
+    s.kill()
+
+
+def _snapshot(root: Path) -> dict[str, str]:
+    return {
+        str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(root.rglob("*"))
+        if p.is_file()
+    }
+
+
+def _job(http: httpx.Client, uploaded: int = 0, started: bool = False) -> str:
+    jid = http.post("/jobs", json=GOOD).json()["id"]
+    for i in range(uploaded):
+        img = np.full((H, W), 40 + 30 * i, np.uint8)
+        assert http.put(f"/jobs/{jid}/images/{i}", content=img.tobytes()).status_code == 200
+    if started:
+        assert http.post(f"/jobs/{jid}/start").status_code == 202
+        for _ in range(300):
+            if http.get(f"/jobs/{jid}").json()["state"] == "done":
+                break
+            time.sleep(0.1)
+    return jid
+
+
+@dataclass(frozen=True)
+class Bad:
+    name: str
+    request: Callable[[httpx.Client, str], httpx.Response]
+    status: int
+    reason: str
+    uploaded: int = 0
+    started: bool = False
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+def _create(**changes: Any) -> Callable[[httpx.Client, str], httpx.Response]:
+    return lambda http, jid: http.post("/jobs", json={**GOOD, **changes})
+
+
+def _put(index: int | str, body: bytes, ctype: str = "application/octet-stream", **headers: str):
+    return lambda http, jid: http.put(
+        f"/jobs/{jid}/images/{index}", content=body, headers={"Content-Type": ctype, **headers}
+    )
+
+
+def _lying_put(http: httpx.Client, path: str, declared: int) -> httpx.Response:
+    """A PUT that declares a huge body and sends 4 bytes (httpx refuses to)."""
+    url = httpx.URL(str(http.base_url))
+    conn = HTTPConnection(url.host, url.port, timeout=30)
+    try:
+        conn.putrequest("PUT", path)
+        conn.putheader("Content-Type", "application/octet-stream")
+        conn.putheader("Content-Length", str(declared))
+        conn.endheaders(b"\x00" * 4)
+        r = conn.getresponse()
+        return httpx.Response(r.status, content=r.read())
+    finally:
+        conn.close()
+
+
+PNG_WRONG_SIZE = imagecodecs.png_encode(np.zeros((H + 1, W), np.uint8))
+PNG_RGB = imagecodecs.png_encode(np.zeros((H, W, 3), np.uint8))
+PNG_16 = imagecodecs.png_encode(np.zeros((H, W), np.uint16))
+
+CASES = [
+    Bad("k-below-3", _create(k=2, lights=LIGHTS[:2]), 422, "k"),
+    Bad("lights-count", _create(lights=LIGHTS[:3]), 422, "lights must be 4 rows of 3 numbers"),
+    Bad("lights-not-unit", _create(lights=[[0, 0, 2]] * K), 422, "unit vectors"),
+    Bad("lights-zero", _create(lights=[[0, 0, 0]] * K), 422, "unit vectors"),
+    Bad("lights-not-3d", _create(lights=[[0, 1]] * K), 422, "rows of 3"),
+    Bad("eps-negative", _create(eps=-1), 422, "eps"),
+    Bad("eps-word", _create(eps="loose"), 422, "eps"),
+    Bad("solver-unknown", _create(solver="simplex"), 422, "solver"),
+    Bad("dtype-unknown", _create(dtype="int64"), 422, "dtype"),
+    Bad("channels-2", _create(channels=2), 422, "channels"),
+    Bad("tile-too-small", _create(tile=2), 422, "tile"),
+    Bad("height-zero", _create(height=0), 422, "height"),
+    Bad("intensities-count", _create(intensities=[1.0, 1.0]), 422, "light intensities"),
+    Bad("intensities-negative", _create(intensities=[1.0, -1.0, 1.0, 1.0]), 422, "positive"),
+    Bad("unknown-job", lambda h, j: h.get("/jobs/" + "0" * 32), 404, "no job"),
+    Bad("job-id-with-dots", lambda h, j: h.get("/jobs/..%2F..%2Fetc"), 404, "no job"),
+    Bad("job-id-not-hex", lambda h, j: h.get("/jobs/zzzz"), 404, "32 hexadecimal"),
+    Bad("raw-too-few-bytes", _put(0, b"\x00" * (H * W - 1)), 422, f"expected {H * W}"),
+    Bad("raw-too-many-bytes", _put(0, b"\x00" * (H * W + 5)), 413, "larger than"),
+    Bad("declared-too-large", lambda h, j: _lying_put(h, f"/jobs/{j}/images/0", 10**9), 413, "larger than"),
+    Bad("index-out-of-range", _put(K, b"\x00" * (H * W)), 404, "out of range"),
+    Bad("index-negative", _put(-1, b"\x00" * (H * W)), 422, "index"),
+    Bad("corrupt-png", _put(0, b"\x89PNG\r\n\x1a\n" + b"junk" * 10, "image/png"), 422, "cannot decode"),
+    Bad("png-wrong-size", _put(0, PNG_WRONG_SIZE, "image/png"), 422, "has shape"),
+    Bad("png-rgb-for-grey-job", _put(0, PNG_RGB, "image/png"), 422, "has shape"),
+    Bad("png-16bit-for-8bit-job", _put(0, PNG_16, "image/png"), 422, "dtype"),
+    Bad("start-missing-images", lambda h, j: h.post(f"/jobs/{j}/start"), 409, "missing 2 images", uploaded=2),
+    Bad(
+        "mask-wrong-bytes",
+        lambda h, j: h.put(
+            f"/jobs/{j}/mask", content=b"\x01" * 3, headers={"Content-Type": "application/octet-stream"}
+        ),
+        422,
+        "mask",
+    ),
+    Bad("upload-after-done", _put(0, b"\x00" * (H * W)), 409, "done", uploaded=K, started=True),
+    Bad(
+        "start-twice", lambda h, j: h.post(f"/jobs/{j}/start"), 409, "already done", uploaded=K, started=True
+    ),
+    Bad(
+        "cancel-finished", lambda h, j: h.delete(f"/jobs/{j}"), 409, "already done", uploaded=K, started=True
+    ),
+    Bad(
+        "unknown-result",
+        lambda h, j: h.get(f"/jobs/{j}/results/secrets.npy"),
+        404,
+        "no output array",
+        uploaded=K,
+        started=True,
+    ),
+    Bad("unknown-preview", lambda h, j: h.get(f"/jobs/{j}/previews/x.png"), 404, "no preview"),
+]
+
+
+@pytest.mark.parametrize("case", CASES, ids=lambda c: c.name)
+def test_bad_request(server: Server, case: Bad) -> None:
+    with httpx.Client(base_url=server.url, timeout=60) as http:
+        jid = _job(http, case.uploaded, case.started)
+        before = _snapshot(server.data)
+        r = case.request(http, jid)
+        assert r.status_code == case.status, r.text
+        body = r.json()
+        assert set(body) == {"error", "detail"}
+        assert case.reason in body["detail"], body
+        assert _snapshot(server.data) == before, "a rejected request changed stored data"
