@@ -14,6 +14,7 @@ import shutil
 import tempfile
 import uuid
 import zipfile
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -118,28 +119,29 @@ class JobManager:
                 continue
         return sorted(out, key=lambda r: r.created_at)
 
-    async def upload_image(self, job_id: str, index: int, image: NDArray) -> JobRecord:
+    async def _write_before_start(
+        self, job_id: str, what: str, write: Callable[[JobStore], None], *, image: bool
+    ) -> JobRecord:
+        """Run a store write while the job still takes uploads; an image marks it uploading."""
         async with self.lock(job_id):
             rec = self.record(job_id)
             if not rec.state.accepts_uploads:
-                raise ConflictError(
-                    f"job {job_id} is {rec.state.value}; images can only be uploaded before start"
-                )
-            store = self.store(job_id, "r+")
-            await asyncio.to_thread(store.write_image, index, image)
-            rec.state = JobState.UPLOADING
-            save_record(self.job_dir(job_id), rec)
+                raise ConflictError(f"job {job_id} is {rec.state.value}; {what} only before start")
+            await asyncio.to_thread(write, self.store(job_id, "r+"))
+            if image:
+                rec.state = JobState.UPLOADING
+                save_record(self.job_dir(job_id), rec)
             return rec
 
-    async def upload_mask(self, job_id: str, mask: NDArray[np.bool_]) -> None:
-        async with self.lock(job_id):
-            rec = self.record(job_id)
-            if not rec.state.accepts_uploads:
-                raise ConflictError(
-                    f"job {job_id} is {rec.state.value}; the mask can only be set before start"
-                )
-            store = self.store(job_id, "r+")
-            await asyncio.to_thread(store.write_mask, mask)
+    async def upload_image(self, job_id: str, index: int, image: NDArray) -> JobRecord:
+        return await self._write_before_start(
+            job_id, "images can be uploaded", lambda store: store.write_image(index, image), image=True
+        )
+
+    async def upload_mask(self, job_id: str, mask: NDArray[np.bool_]) -> JobRecord:
+        return await self._write_before_start(
+            job_id, "the mask can be set", lambda store: store.write_mask(mask)
+        )
 
     async def start_job(self, job_id: str) -> JobRecord:
         """Start (or resume, after cancel or failure) a job whose images are all uploaded."""

@@ -23,6 +23,8 @@ import highspy
 import numpy as np
 from numpy.typing import NDArray
 
+from worker.problem import box_halfwidth, slabs
+
 #: Re-check tolerance for claimed inliers, relative to the pixel's largest b.
 #: HiGHS accepts y_i within integrality tolerance of 0, which lets a big-M row
 #: be violated by about M * 1e-9; anything beyond this is reported.
@@ -89,9 +91,8 @@ class MilpSolver:
         """Solve one pixel: returns (point n, claimed optimal count, finished)."""
         h, k, L, inf = self.h, self.k, self.L, self.inf
         I = np.asarray(intensities, dtype=np.float64)
-        a = np.maximum(I - eps, eps)
-        b = I + eps
-        U = float(box_factor * b[valid].max())
+        a, b = slabs(I, eps)
+        U = box_halfwidth(b, valid, box_factor)
         h.changeColsBounds(3, np.arange(3, dtype=np.int32), np.full(3, -U), np.full(3, U))
         lo_y = np.where(valid, 0.0, 1.0)
         h.changeColsBounds(k, np.arange(3, 3 + k, dtype=np.int32), lo_y, np.ones(k))
@@ -142,8 +143,7 @@ class MilpSolver:
             if v.sum() < 3:
                 continue
             n, c, done = self.solve_pixel(I[p], v, eps, box_factor)
-            a = np.maximum(I[p] - eps, eps)
-            b = I[p] + eps
+            a, b = slabs(I[p], eps)
             tol = RECHECK_REL_TOL * b[v].max()
             d = self.L @ n
             inl[p] = v & (d >= a - tol) & (d <= b + tol)
