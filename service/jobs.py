@@ -140,7 +140,7 @@ class JobManager:
 
     async def upload_mask(self, job_id: str, mask: NDArray[np.bool_]) -> JobRecord:
         return await self._write_before_start(
-            job_id, "the mask can be set", lambda store: store.write_mask(mask)
+            job_id, "the mask can be set", lambda store: store.write_mask(mask), image=False
         )
 
     async def start_job(self, job_id: str) -> JobRecord:
