@@ -2,43 +2,62 @@
 
 Every error is JSON ``{"error": <class>, "detail": <what is wrong and how to fix it>}``
 with the status from :data:`STATUS` (one map from exception class to code).
+
+Every ``/jobs`` route needs ``Authorization: Bearer <token>`` unless the server
+runs with auth off; a job of another user answers 404, exactly like a job that
+does not exist. Image uploads are checked (owner, state, index, declared size,
+disk space) before the body is read, streamed to a staging file in the job
+folder, validated whole, then written to the store one shard band at a time: the
+server holds one band of one image per request, whatever k is, and a rejected
+upload leaves the store as it was.
 """
 
 from __future__ import annotations
 
+import os
+import tempfile
+from collections.abc import Iterator
 from contextlib import asynccontextmanager
+from pathlib import Path as FsPath
 from typing import Annotated, Any, Literal
 
 import numpy as np
-from fastapi import APIRouter, FastAPI, Path, Request
+from fastapi import APIRouter, Depends, FastAPI, Path, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse, JSONResponse, Response
 from pydantic import BaseModel, Field
 from starlette.background import BackgroundTask
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from service.jobs import JobManager, npy_bytes
+from service.jobs import TEMP_PREFIX, JobManager, npy_bytes
 from service.previews import PREVIEWS, render
 from service.settings import Settings
 from storage.imageio import decode_bytes, encode_png
-from storage.layout import JobSpec
+from storage.layout import JobSpec, JobStore
 from storage.params import JobParams
 from storage.records import JobRecord
+from storage.tokens import LOCAL_USER, TokenStore, User
 from worker.errors import (
+    AuthError,
     ConflictError,
+    InsufficientStorageError,
     InvalidInputError,
     MaxfsError,
     NotFoundError,
     PayloadTooLargeError,
+    QuotaError,
     StoreError,
 )
 
 #: Exception class -> HTTP status; the first matching base class wins.
 STATUS: list[tuple[type[Exception], int]] = [
+    (AuthError, 401),
     (NotFoundError, 404),
     (ConflictError, 409),
     (PayloadTooLargeError, 413),
     (InvalidInputError, 422),
+    (QuotaError, 429),
+    (InsufficientStorageError, 507),
     (StoreError, 500),
     (MaxfsError, 400),
 ]
@@ -58,7 +77,9 @@ class CreateJob(BaseModel):
     )
     eps: float | Literal["auto"] = "auto"
     solver: Literal["exact", "milp", "l2"] = "exact"
-    tile: int = Field(128, ge=8, le=4096)
+    tile: int | Literal["auto"] = Field(
+        "auto", description="tile edge in pixels (8-4096), or auto: from k and the server's task memory"
+    )
     shadow: float | None = Field(None, ge=0, description="intensities <= this are shadows (default: eps)")
     saturation: float | None = Field(None, gt=0, description="float input only: values >= this are saturated")
     box_factor: float = Field(10.0, ge=1)
@@ -94,13 +115,18 @@ def status_body(
     return body
 
 
-async def read_body(request: Request, limit: int) -> bytes:
-    """The request body, refusing (413) before reading when it is declared too large."""
+def check_declared(request: Request, limit: int) -> None:
+    """Refuse (413) a body declared larger than ``limit`` before reading any of it."""
     declared = request.headers.get("content-length")
     if declared is not None and declared.isdigit() and int(declared) > limit:
         raise PayloadTooLargeError(
             f"body of {declared} bytes is larger than the {limit} bytes this upload allows"
         )
+
+
+async def read_body(request: Request, limit: int) -> bytes:
+    """A small request body, in memory, refusing (413) one larger than ``limit``."""
+    check_declared(request, limit)
     buf = bytearray()
     async for chunk in request.stream():
         buf += chunk
@@ -109,13 +135,71 @@ async def read_body(request: Request, limit: int) -> bytes:
     return bytes(buf)
 
 
+async def stage_body(request: Request, folder: FsPath, name: str, limit: int) -> FsPath:
+    """Stream the body to a staging file in ``folder`` (removed by the caller, or as an
+    orphan on the next start); refuse (413) past ``limit`` bytes."""
+    check_declared(request, limit)
+    fd, tmp = tempfile.mkstemp(prefix=f"{TEMP_PREFIX}{name}-", suffix=".part", dir=folder)
+    path, n = FsPath(tmp), 0
+    try:
+        with os.fdopen(fd, "wb") as f:
+            async for chunk in request.stream():
+                n += len(chunk)
+                if n > limit:
+                    raise PayloadTooLargeError(f"body is larger than the {limit} bytes this upload allows")
+                f.write(chunk)
+    except BaseException:
+        path.unlink(missing_ok=True)
+        raise
+    return path
+
+
+def raw_bands(path: FsPath, spec: JobSpec, rows: int) -> Iterator[np.ndarray]:
+    """Bands of ``rows`` rows of a raw little-endian image file."""
+    wire = np.dtype(spec.dtype).newbyteorder("<")
+    row_shape = spec.image_shape[1:]
+    per_row = int(np.prod(row_shape))
+    with open(path, "rb") as f:
+        for y in range(0, spec.height, rows):
+            n = min(rows, spec.height - y)
+            band = np.fromfile(f, dtype=wire, count=n * per_row).reshape(n, *row_shape)
+            yield band.astype(spec.dtype, copy=False)
+
+
+def make_auth(settings: Settings, tokens: TokenStore):
+    """The dependency that puts the request's :class:`User` in ``request.state.user``."""
+
+    async def authenticate(request: Request) -> None:
+        if not settings.auth:
+            request.state.user = LOCAL_USER
+            return
+        scheme, _, token = request.headers.get("authorization", "").partition(" ")
+        if scheme.lower() != "bearer" or not token.strip():
+            raise AuthError(
+                "this server needs an API token: send 'Authorization: Bearer <token>' "
+                "(an administrator makes one with `maxfs token create NAME`)"
+            )
+        user = tokens.authenticate(token.strip())
+        if user is None:
+            raise AuthError("the API token is not valid (mistyped or revoked); ask for a new one")
+        request.state.user = user
+
+    return authenticate
+
+
+def _user(request: Request) -> User:
+    return request.state.user
+
+
 class JobRoutes:
     """Routes for jobs, built around one :class:`JobManager`."""
 
-    def __init__(self, manager: JobManager, settings: Settings) -> None:
+    def __init__(self, manager: JobManager, settings: Settings, tokens: TokenStore) -> None:
         self.m = manager
         self.s = settings
-        self.router = APIRouter(prefix="/jobs", tags=["jobs"])
+        self.router = APIRouter(
+            prefix="/jobs", tags=["jobs"], dependencies=[Depends(make_auth(settings, tokens))]
+        )
         r = self.router
         r.add_api_route("", self.create, methods=["POST"], status_code=201)
         r.add_api_route("", self.list, methods=["GET"])
@@ -129,7 +213,7 @@ class JobRoutes:
         r.add_api_route("/{job_id}/previews/{name}.png", self.preview, methods=["GET"])
 
     def _body(self, request: Request, job_id: str) -> dict[str, Any]:
-        rec = self.m.record(job_id)
+        rec = self.m.access(job_id, _user(request))
         store = self.m.store(job_id)
         return status_body(rec, str(request.base_url).rstrip("/"), int(store.uploaded().sum()), store.spec.k)
 
@@ -148,28 +232,38 @@ class JobRoutes:
             raise InvalidInputError(
                 f"lights must be {req.k} rows of 3 numbers, got shape {np.shape(req.lights)}"
             )
+        spec = spec.validate()
+        tile = spec.auto_tile(self.s.task_memory) if req.tile == "auto" else req.tile
         params = JobParams.build(
             eps=req.eps,
             solver=req.solver,
-            tile=req.tile,
+            tile=tile,
             shadow=req.shadow,
             saturation=req.saturation,
             box_factor=req.box_factor,
             max_nodes=req.max_nodes,
             milp_time_limit=req.milp_time_limit,
         )
-        rec = self.m.create(spec, params)
+        spec.check_tile(params.tile, self.s.task_memory)
+        rec = self.m.create(spec, params, _user(request))
         body = self._body(request, rec.id)
         return JSONResponse(body, status_code=201, headers={"Location": body["links"]["self"]})
 
     async def list(self, request: Request) -> list[dict[str, Any]]:
         """All jobs, oldest first."""
         base = str(request.base_url).rstrip("/")
-        return [status_body(r, base) for r in self.m.list()]
+        return [status_body(r, base) for r in self.m.list(_user(request))]
 
     async def status(self, job_id: str, request: Request) -> dict[str, Any]:
         """State, progress (tiles, pixels/s, ETA, certified share) and error reason of a job."""
         return self._body(request, job_id)
+
+    def _before_upload(self, request: Request, job_id: str, what: str) -> JobStore:
+        """Owner and state checks that need no body, so a doomed upload is refused unread."""
+        rec = self.m.access(job_id, _user(request))
+        if not rec.state.accepts_uploads:
+            raise ConflictError(f"job {job_id} is {rec.state.value}; {what} only before start")
+        return self.m.store(job_id)
 
     async def upload_image(
         self, job_id: str, index: Annotated[int, Path(ge=0)], request: Request
@@ -178,28 +272,43 @@ class JobRoutes:
 
         Idempotent: uploading the same index again replaces it, until the job starts.
         """
-        spec = self.m.store(job_id).spec
+        store = self._before_upload(request, job_id, "images can be uploaded")
+        spec = store.spec
+        store.check_index(index)
         raw = request.headers.get("content-type", "application/octet-stream").startswith(
             "application/octet-stream"
         )
         limit = spec.image_nbytes if raw else min(self.s.max_upload_bytes, 2 * spec.image_nbytes + (1 << 20))
-        data = await read_body(request, limit)
-        if raw:
-            if len(data) != spec.image_nbytes:
-                raise InvalidInputError(
-                    f"image {index}: got {len(data)} bytes, expected {spec.image_nbytes} "
-                    f"({' x '.join(map(str, spec.image_shape))} {spec.dtype}, little-endian, row-major)"
-                )
-            img = np.frombuffer(data, dtype=np.dtype(spec.dtype).newbyteorder("<")).reshape(spec.image_shape)
-            img = img.astype(spec.dtype)
-        else:
-            img = decode_bytes(data, what=f"image {index}")
-        await self.m.upload_image(job_id, index, img)
+        check_declared(request, limit)
+        self.m.check_disk(spec.image_nbytes + limit, f"image {index}")
+        part = await stage_body(request, self.m.job_dir(job_id), f"upload-{index}", limit)
+        try:
+            size = part.stat().st_size
+            if raw:
+                if size != spec.image_nbytes:
+                    raise InvalidInputError(
+                        f"image {index}: got {size} bytes, expected {spec.image_nbytes} "
+                        f"({' x '.join(map(str, spec.image_shape))} {spec.dtype}, little-endian, row-major)"
+                    )
+
+                def write(st: JobStore) -> None:
+                    st.write_bands(index, raw_bands(part, spec, st.band_rows))
+
+            else:
+                img = decode_bytes(part.read_bytes(), what=f"image {index}")
+                store.check_image(index, img)
+
+                def write(st: JobStore) -> None:
+                    st.write_image(index, img)
+
+            await self.m.upload_image(job_id, index, write)
+        finally:
+            part.unlink(missing_ok=True)
         return self._body(request, job_id)
 
     async def upload_mask(self, job_id: str, request: Request) -> dict[str, Any]:
         """Upload the object mask: PNG (non-zero = object) or raw H*W bytes."""
-        spec = self.m.store(job_id).spec
+        spec = self._before_upload(request, job_id, "the mask can be set").spec
         data = await read_body(request, 2 * spec.height * spec.width + (1 << 20))
         if request.headers.get("content-type", "").startswith("application/octet-stream"):
             if len(data) != spec.height * spec.width:
@@ -213,18 +322,19 @@ class JobRoutes:
 
     async def start(self, job_id: str, request: Request) -> dict[str, Any]:
         """Start, or resume a cancelled/failed job from its finished tiles."""
-        await self.m.start_job(job_id)
+        await self.m.start_job(job_id, _user(request))
         body = self._body(request, job_id)
         body["status_url"] = body["links"]["self"]
         return body
 
     async def cancel(self, job_id: str, request: Request) -> dict[str, Any]:
         """Cancel: running tiles finish, nothing else starts; start again to resume."""
-        await self.m.cancel(job_id)
+        await self.m.cancel(job_id, _user(request))
         return self._body(request, job_id)
 
-    async def result(self, job_id: str, name: str) -> Response:
+    async def result(self, job_id: str, name: str, request: Request) -> Response:
         """One output array as NPY (normal, albedo, albedo_rgb, inliers, inlier_count, optimal, mask)."""
+        self.m.access(job_id, _user(request))
         arr = self.m.store(job_id).read_output(name)
         return Response(
             npy_bytes(arr),
@@ -232,16 +342,18 @@ class JobRoutes:
             headers={"Content-Disposition": f'attachment; filename="{name}.npy"'},
         )
 
-    async def preview(self, job_id: str, name: str) -> Response:
+    async def preview(self, job_id: str, name: str, request: Request) -> Response:
         """PNG preview: normal (paper colouring), albedo, inlier_count."""
+        self.m.access(job_id, _user(request))
         if name not in PREVIEWS:
             raise NotFoundError(f"no preview {name!r}; available: {', '.join(PREVIEWS)}")
         store = self.m.store(job_id)
         arrays = {n: store.read_output(n) for n in store.output_names()}
         return Response(encode_png(render(name, arrays, store.spec.k)), media_type="image/png")
 
-    async def zip(self, job_id: str) -> FileResponse:
+    async def zip(self, job_id: str, request: Request) -> FileResponse:
         """The job's whole Zarr group as a zip archive."""
+        self.m.access(job_id, _user(request))
         path = self.m.zip_store(job_id)
         return FileResponse(
             path,
@@ -253,13 +365,15 @@ class JobRoutes:
 
 def _error_response(exc: Exception) -> JSONResponse:
     code = next((c for cls, c in STATUS if isinstance(exc, cls)), 500)
-    return JSONResponse({"error": type(exc).__name__, "detail": str(exc)}, status_code=code)
+    headers = {"WWW-Authenticate": "Bearer"} if code == 401 else None
+    return JSONResponse({"error": type(exc).__name__, "detail": str(exc)}, status_code=code, headers=headers)
 
 
 def create_app(settings: Settings | None = None, manager: JobManager | None = None) -> FastAPI:
     """Build the application; the manager (and its Dask client) starts in the lifespan."""
     settings = settings or Settings()
     manager = manager or JobManager(settings)
+    tokens = TokenStore(settings.tokens_file)
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):
@@ -276,11 +390,12 @@ def create_app(settings: Settings | None = None, manager: JobManager | None = No
         lifespan=lifespan,
     )
     app.state.manager = manager
-    app.include_router(JobRoutes(manager, settings).router)
+    app.include_router(JobRoutes(manager, settings, tokens).router)
 
     @app.get("/health", tags=["service"])
     async def health() -> dict[str, Any]:
-        return {"status": "ok", "jobs_running": len(manager.runs)}
+        """Liveness, without a token; says nothing about anyone's jobs."""
+        return {"status": "ok", "auth": settings.auth}
 
     @app.exception_handler(MaxfsError)
     async def maxfs_error(_: Request, exc: MaxfsError) -> JSONResponse:

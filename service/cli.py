@@ -10,8 +10,9 @@ from typing import Any
 
 import httpx
 
-from service.settings import Settings
-from worker.errors import MaxfsError
+from service.settings import LOOPBACK, Settings
+from storage.tokens import TokenStore
+from worker.errors import InvalidInputError, MaxfsError
 
 EXIT_USAGE = 2
 
@@ -31,14 +32,32 @@ def _eps(value: str) -> float | str:
 def _solver_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--eps", type=_eps, default="auto", help="Lambertian tolerance, or auto (default: auto)")
     p.add_argument("--solver", choices=["exact", "milp", "l2"], default="exact")
-    p.add_argument("--tile", type=int, default=None, help="tile edge in pixels (default 128)")
+    p.add_argument(
+        "--tile",
+        type=_tile,
+        default="auto",
+        help="tile edge in pixels, or auto (from k and MAXFS_TASK_MEMORY)",
+    )
+
+
+def _tile(value: str) -> int | str:
+    if value == "auto":
+        return value
+    try:
+        return int(value)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"tile must be a whole number of pixels or 'auto', got {value!r}"
+        ) from None
+
+
+def _server_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--server", default=None, help="server URL (default: MAXFS_SERVER)")
+    p.add_argument("--token", default=None, help="API token (default: MAXFS_TOKEN)")
 
 
 def _params(args: argparse.Namespace) -> dict[str, Any]:
-    out: dict[str, Any] = {"eps": args.eps, "solver": args.solver}
-    if args.tile is not None:
-        out["tile"] = args.tile
-    return out
+    return {"eps": args.eps, "solver": args.solver, "tile": args.tile}
 
 
 def _progress(rec: Any) -> None:
@@ -51,11 +70,17 @@ def _progress(rec: Any) -> None:
 def cmd_run(args: argparse.Namespace) -> int:
     from service.local import ingest, run_store
     from storage.datasets import load_folder
+    from storage.layout import JobSpec
     from storage.params import JobParams
 
     settings = Settings()
     ds = load_folder(args.folder)
-    params = JobParams.build(**_params(args))
+    spec = JobSpec(ds.k, ds.height, ds.width, ds.channels, ds.dtype, ds.lights, ds.intensities).validate()
+    kw = _params(args)
+    if kw["tile"] == "auto":
+        kw["tile"] = spec.auto_tile(settings.task_memory)
+    spec.check_tile(kw["tile"], settings.task_memory)
+    params = JobParams.build(**kw)
     print(f"{ds.name}: {ds.k} images of {ds.height} x {ds.width} ({ds.layout}, {ds.dtype})", file=sys.stderr)
     store, note = ingest(ds, Path(args.output), params)
     if note:
@@ -70,7 +95,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     share = rec.certified_pixels / rec.pixels_done if rec.pixels_done else 1.0
     took = (rec.finished_at or 0) - (rec.started_at or 0)
     print(
-        f"done: {rec.pixels_done} pixels in {took:.1f} s, eps={rec.eps:.4g}, "
+        f"done: {rec.pixels_done} pixels in {took:.1f} s, eps={rec.eps:.4g}, tile={store.params.tile}, "
         f"certified optimal: {share:.2%}; results in {store.path} (previews/ has PNGs)"
     )
     return 0
@@ -120,10 +145,23 @@ def cmd_serve(args: argparse.Namespace) -> int:
             "data_dir": args.data_dir,
             "workers": args.workers,
             "scheduler": args.scheduler,
+            "auth": False if args.no_auth else None,
         }.items()
         if v is not None
     }
     settings = Settings(**overrides)
+    if not settings.auth and settings.host not in LOOPBACK:
+        raise MaxfsError(
+            f"refusing to serve without auth on {settings.host}: anyone who can reach it could read and "
+            "cancel every job. Use --host 127.0.0.1, or keep auth on and make tokens "
+            "with `maxfs token create`"
+        )
+    if settings.auth and not TokenStore(settings.tokens_file).users():
+        print(
+            f"maxfs: auth is on and no API token exists yet; make one with "
+            f"`maxfs token create NAME --data-dir {settings.data_dir}` (or serve with --no-auth on loopback)",
+            file=sys.stderr,
+        )
     uvicorn.run(create_app(settings), host=settings.host, port=settings.port, log_level="info")
     return 0
 
@@ -131,7 +169,32 @@ def cmd_serve(args: argparse.Namespace) -> int:
 def _client(args: argparse.Namespace):
     from service.client import MaxfsClient
 
-    return MaxfsClient(args.server or Settings().server)
+    s = Settings()
+    return MaxfsClient(args.server or s.server, token=args.token or s.token or None)
+
+
+def cmd_token(args: argparse.Namespace) -> int:
+    overrides = {"data_dir": args.data_dir} if args.data_dir else {}
+    tokens = TokenStore(Settings(**overrides).tokens_file)
+    if args.action == "create":
+        if not args.name:
+            raise InvalidInputError("give the user's name: maxfs token create NAME")
+        token = tokens.create(args.name, admin=args.admin, replace=args.replace)
+        print(token)
+        print(
+            f"token for {args.name}{' (admin)' if args.admin else ''}; it is shown only now. "
+            "Clients send it as 'Authorization: Bearer <token>' or set MAXFS_TOKEN.",
+            file=sys.stderr,
+        )
+    elif args.action == "revoke":
+        if not args.name:
+            raise InvalidInputError("give the user's name: maxfs token revoke NAME")
+        tokens.revoke(args.name)
+        print(f"revoked the token of {args.name}", file=sys.stderr)
+    else:
+        for u in tokens.users():
+            print(f"{u.name}{'  admin' if u.admin else ''}")
+    return 0
 
 
 def cmd_submit(args: argparse.Namespace) -> int:
@@ -183,24 +246,32 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--data-dir", default=None)
     p.add_argument("--workers", type=int, default=None)
     p.add_argument("--scheduler", default=None)
+    p.add_argument("--no-auth", action="store_true", help="no API tokens (single user, loopback only)")
     p.set_defaults(fn=cmd_serve)
+    p = sub.add_parser("token", help="make, list or revoke API tokens of a server's users")
+    p.add_argument("action", choices=["create", "list", "revoke"])
+    p.add_argument("name", nargs="?")
+    p.add_argument("--admin", action="store_true", help="the token sees and cancels every user's jobs")
+    p.add_argument("--replace", action="store_true", help="replace the user's existing token")
+    p.add_argument("--data-dir", default=None, help="the server's data folder (default: MAXFS_DATA_DIR)")
+    p.set_defaults(fn=cmd_token)
     for name, fn, help_ in (
         ("status", cmd_status, "show a job's state and progress"),
         ("cancel", cmd_cancel, "cancel a job"),
     ):
         p = sub.add_parser(name, help=help_)
         p.add_argument("job_id")
-        p.add_argument("--server", default=None)
+        _server_args(p)
         p.set_defaults(fn=fn)
     p = sub.add_parser("submit", help="send a dataset folder to a server; prints the job id")
     p.add_argument("folder")
-    p.add_argument("--server", default=None)
+    _server_args(p)
     _solver_args(p)
     p.set_defaults(fn=cmd_submit)
     p = sub.add_parser("fetch", help="download a job's results as a Zarr folder")
     p.add_argument("job_id")
     p.add_argument("-o", "--output", required=True)
-    p.add_argument("--server", default=None)
+    _server_args(p)
     p.set_defaults(fn=cmd_fetch)
     return ap
 

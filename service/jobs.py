@@ -2,16 +2,22 @@
 
 It owns the asynchronous Dask client (an embedded LocalCluster, or an external
 scheduler from settings) and one asyncio task per running job. On start it
-resumes every job whose record says queued or running: a restarted server loses
-no finished tile and finishes what was in flight.
+removes what a killed process left half-made (a job folder without a record,
+staged uploads, temp files) and resumes every job whose record says queued or
+running: a restarted server loses no finished tile and finishes what was in
+flight. Every job belongs to a user; other users get "no job" for it, as if it
+did not exist, unless they are admins. Per-user and disk limits are checked
+here, before anything is stored.
 """
 
 from __future__ import annotations
 
 import asyncio
 import io
+import logging
 import shutil
 import tempfile
+import time
 import uuid
 import zipfile
 from collections.abc import Callable
@@ -25,8 +31,20 @@ from service.orchestrator import run_job, warm_workers
 from service.settings import Settings
 from storage.layout import JobSpec, JobStore
 from storage.params import JobParams
-from storage.records import JobRecord, JobState, load_record, save_record
-from worker.errors import ConflictError, NotFoundError, StoreError
+from storage.records import RECORD_NAME, JobRecord, JobState, load_record, save_record
+from storage.tokens import User
+from worker.errors import (
+    ConflictError,
+    InsufficientStorageError,
+    NotFoundError,
+    PayloadTooLargeError,
+    QuotaError,
+    StoreError,
+)
+
+log = logging.getLogger("maxfs.jobs")
+#: Prefix of every temporary file a process writes in a job folder (removed on start).
+TEMP_PREFIX = ".maxfs-"
 
 
 def _check_id(job_id: str) -> str:
@@ -45,10 +63,12 @@ class JobManager:
         self.cluster: LocalCluster | None = None
         self.runs: dict[str, asyncio.Task] = {}
         self.locks: dict[str, asyncio.Lock] = {}
+        self.closing = False
 
     # -- life cycle ---------------------------------------------------------------------------
     async def start(self) -> None:
         self.root.mkdir(parents=True, exist_ok=True)
+        self.clean_orphans()
         s = self.settings
         if s.scheduler:
             self.client = await Client(s.scheduler, asynchronous=True)
@@ -71,7 +91,43 @@ class JobManager:
             if rec.state.active:
                 self._launch(rec.id)
 
+    def clean_orphans(self) -> list[Path]:
+        """Remove what a killed process left half-made; return what was removed.
+
+        A job folder without a record was cut short while being created (the
+        record is written last) and never given to anyone; staged uploads and
+        temp files belong to requests that can no longer finish.
+        """
+        removed: list[Path] = []
+        for d in sorted(self.root.iterdir()):
+            if d.is_dir() and not (d / RECORD_NAME).exists():
+                shutil.rmtree(d, ignore_errors=True)
+                removed.append(d)
+                continue
+            for p in d.glob(TEMP_PREFIX + "*") if d.is_dir() else []:
+                if p.is_file():
+                    p.unlink(missing_ok=True)
+                    removed.append(p)
+        for p in removed:
+            log.warning("removed orphan %s", p)
+        return removed
+
+    async def ensure_client(self) -> Client:
+        """The Dask client, made anew if the scheduler was lost and the old one gave up."""
+        assert self.client is not None, "JobManager.start() was not awaited"
+        if self.client.status in ("closed", "closing", "failed") and self.settings.scheduler:
+            try:
+                self.client = await Client(self.settings.scheduler, asynchronous=True, timeout=10)
+            except OSError as e:
+                raise ConflictError(
+                    f"the Dask scheduler {self.settings.scheduler} cannot be reached ({e}); "
+                    "start the job again once it is back"
+                ) from None
+            await warm_workers(self.client)
+        return self.client
+
     async def close(self) -> None:
+        self.closing = True
         runs = list(self.runs.values())
         for task in runs:
             task.cancel()
@@ -91,14 +147,56 @@ class JobManager:
     def lock(self, job_id: str) -> asyncio.Lock:
         return self.locks.setdefault(job_id, asyncio.Lock())
 
-    def create(self, spec: JobSpec, params: JobParams, owner: str = "local") -> JobRecord:
+    def access(self, job_id: str, user: User) -> JobRecord:
+        """The record of a job ``user`` may see; someone else's job is "not found"."""
+        rec = self.record(job_id)
+        if rec.owner != user.name and not user.admin:
+            raise NotFoundError(f"no job {job_id}")
+        return rec
+
+    def open_jobs(self, user: User) -> int:
+        return sum(1 for r in self.list(user, everyone=False) if not r.state.final)
+
+    def check_disk(self, nbytes: int, what: str) -> None:
+        """Refuse (507) to store ``nbytes`` more if that would eat into the disk reserve."""
+        free = shutil.disk_usage(self.root).free
+        reserve = self.settings.min_free_bytes
+        if free - nbytes < reserve:
+            raise InsufficientStorageError(
+                f"{what} needs up to {nbytes / 2**30:.2f} GiB but the server has "
+                f"{max(free - reserve, 0) / 2**30:.2f} GiB free above its reserve; "
+                "delete old jobs or ask the administrator for space"
+            )
+
+    def check_limits(self, spec: JobSpec, user: User) -> None:
+        """Per-job and per-user limits, then disk space, before anything is stored."""
+        s = self.settings
+        if spec.k > s.max_k:
+            raise PayloadTooLargeError(
+                f"k={spec.k} images is more than this server allows per job ({s.max_k}, MAXFS_MAX_K); "
+                "split the lights into several jobs"
+            )
+        if spec.pixels > s.max_pixels:
+            raise PayloadTooLargeError(
+                f"{spec.height} x {spec.width} = {spec.pixels} pixels is more than this server allows "
+                f"({s.max_pixels}, MAXFS_MAX_PIXELS); crop or bin the images"
+            )
+        if self.open_jobs(user) >= s.max_open_jobs:
+            raise QuotaError(
+                f"user {user.name!r} already has {s.max_open_jobs} unfinished jobs, the most allowed "
+                "(MAXFS_MAX_OPEN_JOBS); wait for one to finish or cancel one"
+            )
+        self.check_disk(spec.store_nbytes(), f"a job of {spec.k} images of {spec.height} x {spec.width}")
+
+    def create(self, spec: JobSpec, params: JobParams, user: User) -> JobRecord:
         spec = spec.validate()
+        self.check_limits(spec, user)
         job_id = uuid.uuid4().hex
         d = self.root / job_id
         try:
             JobStore.create(d, spec, params)
-            rec = JobRecord(id=job_id, owner=owner)
-            save_record(d, rec)
+            rec = JobRecord(id=job_id, owner=user.name)
+            save_record(d, rec)  # last: a folder without a record is an orphan
         except BaseException:
             shutil.rmtree(d, ignore_errors=True)
             raise
@@ -110,13 +208,16 @@ class JobManager:
     def store(self, job_id: str, mode: str = "r") -> JobStore:
         return JobStore.open(self.job_dir(job_id), mode=mode)
 
-    def list(self) -> list[JobRecord]:
+    def list(self, user: User, everyone: bool = True) -> list[JobRecord]:
+        """Jobs ``user`` may see (an admin sees all when ``everyone``), oldest first."""
         out = []
         for d in sorted(self.root.iterdir()) if self.root.exists() else []:
             try:
-                out.append(load_record(d))
+                rec = load_record(d)
             except StoreError:
                 continue
+            if rec.owner == user.name or (user.admin and everyone):
+                out.append(rec)
         return sorted(out, key=lambda r: r.created_at)
 
     async def _write_before_start(
@@ -133,20 +234,19 @@ class JobManager:
                 save_record(self.job_dir(job_id), rec)
             return rec
 
-    async def upload_image(self, job_id: str, index: int, image: NDArray) -> JobRecord:
-        return await self._write_before_start(
-            job_id, "images can be uploaded", lambda store: store.write_image(index, image), image=True
-        )
+    async def upload_image(self, job_id: str, index: int, write: Callable[[JobStore], None]) -> JobRecord:
+        """Store image ``index`` with ``write(store)`` (e.g. :meth:`JobStore.write_bands`)."""
+        return await self._write_before_start(job_id, "images can be uploaded", write, image=True)
 
     async def upload_mask(self, job_id: str, mask: NDArray[np.bool_]) -> JobRecord:
         return await self._write_before_start(
             job_id, "the mask can be set", lambda store: store.write_mask(mask), image=False
         )
 
-    async def start_job(self, job_id: str) -> JobRecord:
+    async def start_job(self, job_id: str, user: User) -> JobRecord:
         """Start (or resume, after cancel or failure) a job whose images are all uploaded."""
         async with self.lock(job_id):
-            rec = self.record(job_id)
+            rec = self.access(job_id, user)
             if rec.state.active or job_id in self.runs:
                 raise ConflictError(f"job {job_id} is already {rec.state.value}")
             if rec.state is JobState.DONE:
@@ -157,6 +257,12 @@ class JobManager:
                     f"job {job_id} is missing {missing.size} images (first: {int(missing[0])}); "
                     "upload them first"
                 )
+            if rec.state.final and self.open_jobs(User(rec.owner)) >= self.settings.max_open_jobs:
+                raise QuotaError(
+                    f"user {rec.owner!r} already has {self.settings.max_open_jobs} unfinished jobs; "
+                    "wait for one to finish before resuming this one"
+                )
+            await self.ensure_client()
             rec.state = JobState.QUEUED
             rec.error = None
             save_record(self.job_dir(job_id), rec)
@@ -174,15 +280,29 @@ class JobManager:
                     progress_interval=self.settings.progress_interval,
                     retries=self.settings.tile_retries,
                 )
+            except asyncio.CancelledError:
+                raise
+            except Exception as e:  # never leave a job "running" with nothing running it
+                log.exception("job %s stopped by an internal error", job_id)
+                self._fail(job_id, f"internal error: {type(e).__name__}: {e}")
             finally:
                 self.runs.pop(job_id, None)
 
         self.runs[job_id] = asyncio.create_task(go(), name=f"maxfs-job-{job_id}")
 
-    async def cancel(self, job_id: str) -> JobRecord:
+    def _fail(self, job_id: str, reason: str) -> None:
+        try:
+            rec = self.record(job_id)
+            if rec.state.active:
+                rec.state, rec.error, rec.finished_at = JobState.FAILED, reason, time.time()
+                save_record(self.job_dir(job_id), rec)
+        except Exception:
+            log.exception("cannot record the failure of job %s", job_id)
+
+    async def cancel(self, job_id: str, user: User) -> JobRecord:
         """Cancel a job: running tiles finish their tile, nothing else starts."""
-        rec = self.record(job_id)
-        if rec.state in (JobState.DONE, JobState.FAILED, JobState.CANCELLED):
+        rec = self.access(job_id, user)
+        if rec.state.final:
             raise ConflictError(f"job {job_id} is already {rec.state.value}")
         self.store(job_id, "r+").request_cancel()
         task = self.runs.get(job_id)
@@ -201,7 +321,7 @@ class JobManager:
         fd, tmp = tempfile.mkstemp(suffix=".zip", prefix=f"maxfs-{job_id}-")
         with open(fd, "wb") as fh, zipfile.ZipFile(fh, "w", zipfile.ZIP_STORED) as zf:
             for p in sorted(d.rglob("*")):
-                if p.is_file() and not p.name.startswith(".maxfs-job-"):
+                if p.is_file() and not p.name.startswith(TEMP_PREFIX):
                     zf.write(p, p.relative_to(d).as_posix())
         return Path(tmp)
 

@@ -7,6 +7,10 @@ from pathlib import Path
 
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from worker.tiles import DEFAULT_TASK_MEMORY
+
+LOOPBACK = ("127.0.0.1", "::1", "localhost")
+
 
 class Settings(BaseSettings):
     """Configuration of the server, the CLI and the embedded cluster.
@@ -16,7 +20,7 @@ class Settings(BaseSettings):
 
     model_config = SettingsConfigDict(env_prefix="MAXFS_")
 
-    #: Where job stores live (one folder per job under ``jobs/``).
+    #: Where job stores live (one folder per job under ``jobs/``) and the token file.
     data_dir: Path = Path("maxfs-data")
     #: Address of an external Dask scheduler; empty = start an embedded LocalCluster.
     scheduler: str = ""
@@ -27,11 +31,29 @@ class Settings(BaseSettings):
     #: HTTP bind address and port for ``maxfs serve`` (loopback by default).
     host: str = "127.0.0.1"
     port: int = 8000
-    #: Largest accepted request body (one image upload), bytes.
+    #: Require a bearer token on every request (``maxfs serve --no-auth`` turns it off, loopback only).
+    auth: bool = True
+    #: Largest accepted request body for encoded (PNG/TIFF) images, bytes; raw uploads must
+    #: match the job's image size exactly.
     max_upload_bytes: int = 1 << 30
+    #: Most images per job.
+    max_k: int = 1000
+    #: Most pixels per image (H x W).
+    max_pixels: int = 64_000_000
+    #: Most jobs per user that are not finished (created, uploading, queued or running).
+    max_open_jobs: int = 8
+    #: Free disk space the server keeps in reserve: a job or upload that would eat into it gets 507.
+    min_free_bytes: int = 1 << 30
+    #: Memory one tile task may use for its arrays; sets the automatic tile size.
+    task_memory: int = DEFAULT_TASK_MEMORY
     #: Seconds between job-record saves while a job runs.
     progress_interval: float = 1.0
     #: Retries of a failed tile task before the job fails.
     tile_retries: int = 2
-    #: Server URL used by ``maxfs submit/status/fetch/cancel``.
+    #: Server URL and API token used by ``maxfs submit/status/fetch/cancel``.
     server: str = "http://127.0.0.1:8000"
+    token: str = ""
+
+    @property
+    def tokens_file(self) -> Path:
+        return Path(self.data_dir) / "maxfs-tokens.json"

@@ -2,7 +2,7 @@
 
 Layout (root group; ``T`` = tile edge, chunks are tile-aligned)::
 
-    images        (k, H, W[, C])  uint8|uint16|float32  chunks (1, T, T[, C])
+    images        (k, H, W[, C])  uint8|uint16|float32  chunks (1, T, T[, C]) in shards (1, T, W'[, C])
     uploaded      (k,)            bool                  chunks (1,)   set after images[i]
     lights        (k, 3)          float64
     intensities   (k, C|1)        float64
@@ -14,6 +14,12 @@ Layout (root group; ``T`` = tile edge, chunks are tile-aligned)::
     inlier_count  (H, W)          uint16
     optimal       (H, W)          bool
     done          (ny, nx)        int32                 chunks (1, 1)
+
+``W'`` is W rounded up to a multiple of T. A tile task reads k chunks of ``images``
+(one per image, through each shard's index); an upload writes one band of T rows
+at a time, which is one whole shard, so the server never holds more than a band.
+An image is written as ``uploaded[i] = False``, its bands, then ``uploaded[i] =
+True``, so an upload cut short (a killed server) leaves the image marked missing.
 
 A tile task writes whole chunks of the outputs, then ``done[ty, tx] =
 params.token()`` last. A tile counts as finished only if its marker equals the
@@ -30,6 +36,7 @@ from __future__ import annotations
 
 import os
 import time
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -43,7 +50,7 @@ from worker.errors import ConflictError, InvalidInputError, NotFoundError, Store
 from worker.observations import ObservationModel
 from worker.problem import check_lights
 from worker.solve import TileResult
-from worker.tiles import Tile, grid_shape, tiles
+from worker.tiles import Tile, auto_tile, grid_shape, tile_memory, tiles
 
 FORMAT_VERSION = 1
 DTYPES = ("uint8", "uint16", "float32")
@@ -87,6 +94,33 @@ class JobSpec:
     def image_nbytes(self) -> int:
         return int(np.prod(self.image_shape)) * np.dtype(self.dtype).itemsize
 
+    @property
+    def itemsize(self) -> int:
+        return np.dtype(self.dtype).itemsize
+
+    @property
+    def pixels(self) -> int:
+        return self.height * self.width
+
+    def store_nbytes(self) -> int:
+        """Upper bound of the job's size on disk (images and outputs, uncompressed)."""
+        C = self.channels or 1
+        per_pixel = 12 + 4 + (4 * C if self.channels else 0) + self.k + 2 + 1 + 1
+        return self.k * self.image_nbytes + self.pixels * per_pixel
+
+    def auto_tile(self, memory: int) -> int:
+        """Tile edge for this stack and a per-task memory budget (see :func:`worker.tiles.auto_tile`)."""
+        return auto_tile(self.k, self.channels, self.itemsize, memory, self.pixels)
+
+    def check_tile(self, tile: int, memory: int) -> None:
+        """Refuse a tile edge whose task would need more than ``memory`` bytes."""
+        need = tile_memory(tile, self.k, self.channels, self.itemsize)
+        if need > memory:
+            raise InvalidInputError(
+                f"tile {tile} needs about {need / 2**20:.0f} MiB per task with k={self.k}, more than the "
+                f"{memory / 2**20:.0f} MiB task budget; use tile {self.auto_tile(memory)} or 'auto'"
+            )
+
 
 class JobStore:
     """A job directory: its Zarr group plus record, run log and cancel flag."""
@@ -118,14 +152,21 @@ class JobStore:
         path.mkdir(parents=True, exist_ok=True)
         T = params.tile
         k, H, W, C = spec.k, spec.height, spec.width, spec.channels
-        img_chunks = (1, min(T, H), min(T, W)) + (() if C is None else (C,))
+        cc = () if C is None else (C,)
+        img_chunks = (1, min(T, H), min(T, W), *cc)
+        img_shards = (1, min(T, H), -(-W // min(T, W)) * min(T, W), *cc)
         try:
             g = zarr.open_group(path, mode="w-", zarr_format=3)
         except (zarr.errors.ContainsGroupError, zarr.errors.ContainsArrayError, FileExistsError):
             raise ConflictError(f"{path} already holds a Zarr store") from None
         tc = (min(T, H), min(T, W))
         g.create_array(
-            "images", shape=(k, *spec.image_shape), chunks=img_chunks, dtype=spec.dtype, fill_value=0
+            "images",
+            shape=(k, *spec.image_shape),
+            chunks=img_chunks,
+            shards=img_shards,
+            dtype=spec.dtype,
+            fill_value=0,
         )
         g.create_array("uploaded", shape=(k,), chunks=(1,), dtype="bool", fill_value=False)
         g.create_array("lights", data=spec.lights)
@@ -190,18 +231,45 @@ class JobStore:
         return ObservationModel.for_input(np.dtype(s.dtype), s.k, s.channels, s.intensities)
 
     # -- inputs -------------------------------------------------------------------------------
-    def write_image(self, i: int, image: NDArray[Any]) -> None:
-        """Store image ``i`` (whole chunks), then mark it uploaded. Idempotent."""
+    def check_index(self, i: int) -> None:
+        k = self.spec.k
+        if not 0 <= i < k:
+            raise NotFoundError(f"image index {i} is out of range; this job has images 0..{k - 1}")
+
+    @property
+    def band_rows(self) -> int:
+        """Rows of one image shard: the unit an upload writes."""
+        return int(self.group["images"].shards[1])
+
+    def check_image(self, i: int, image: NDArray[Any]) -> None:
+        """Refuse an image whose index, shape or dtype does not fit the job."""
         s = self.spec
-        if not 0 <= i < s.k:
-            raise NotFoundError(f"image index {i} is out of range; this job has images 0..{s.k - 1}")
+        self.check_index(i)
         if tuple(image.shape) != s.image_shape:
             raise InvalidInputError(
                 f"image {i} has shape {tuple(image.shape)}, the job expects {s.image_shape}"
             )
         if image.dtype != np.dtype(s.dtype):
             raise InvalidInputError(f"image {i} has dtype {image.dtype}, the job expects {s.dtype}")
-        self.group["images"][i] = image
+
+    def write_image(self, i: int, image: NDArray[Any]) -> None:
+        """Store image ``i`` band by band (whole shards), then mark it uploaded. Idempotent."""
+        s = self.spec
+        self.check_image(i, image)
+        B = self.band_rows
+        self.write_bands(i, (image[y : y + B] for y in range(0, s.height, B)))
+
+    def write_bands(self, i: int, bands: Iterable[NDArray[Any]]) -> None:
+        """Store image ``i`` from consecutive bands of :attr:`band_rows` rows (the last may be
+        shorter). ``uploaded[i]`` is False while the bands are written."""
+        self.check_index(i)
+        images, y = self.group["images"], 0
+        self.group["uploaded"][i] = False
+        for band in bands:
+            images[i, y : y + band.shape[0]] = band
+            y += band.shape[0]
+        if y != self.spec.height:
+            raise InvalidInputError(f"image {i}: got {y} rows, the job expects {self.spec.height}")
         self.group["uploaded"][i] = True
 
     def uploaded(self) -> NDArray[np.bool_]:

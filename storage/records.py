@@ -36,6 +36,11 @@ class JobState(StrEnum):
         return self in (JobState.QUEUED, JobState.RUNNING)
 
     @property
+    def final(self) -> bool:
+        """Nothing runs and nothing will, until the user starts it again."""
+        return self in (JobState.DONE, JobState.FAILED, JobState.CANCELLED)
+
+    @property
     def accepts_uploads(self) -> bool:
         return self in (JobState.CREATED, JobState.UPLOADING)
 

@@ -16,6 +16,8 @@ from pathlib import Path
 import httpx
 from distributed import Client
 
+from storage.tokens import TokenStore
+
 BIN = Path(sys.executable).parent
 
 
@@ -105,16 +107,27 @@ class Server:
     """``maxfs serve`` (uvicorn) on a free loopback port."""
 
     def __init__(
-        self, data_dir: Path, scheduler: str, logs: Path, port: int | None = None, workers: int = 1
+        self,
+        data_dir: Path,
+        scheduler: str,
+        logs: Path,
+        port: int | None = None,
+        workers: int = 1,
+        auth: bool = False,
+        env: dict[str, str] | None = None,
     ) -> None:
-        """``scheduler=""`` starts the server's embedded cluster with ``workers`` processes."""
+        """``scheduler=""`` starts the server's embedded cluster with ``workers`` processes;
+        ``env`` sets more ``MAXFS_*`` settings."""
         self.port = port or free_port()
         self.url = f"http://127.0.0.1:{self.port}"
+        self.data = Path(data_dir)
         extra = ["--scheduler", scheduler] if scheduler else ["--workers", str(workers)]
+        if not auth:
+            extra.append("--no-auth")
         self.proc = _spawn(
             [str(BIN / "maxfs"), "serve", "--port", str(self.port), "--data-dir", str(data_dir), *extra],
             logs / "server.log",
-            env={"MAXFS_PROGRESS_INTERVAL": "0.1"},
+            env={"MAXFS_PROGRESS_INTERVAL": "0.1", **(env or {})},
         )
         t0 = time.monotonic()
         while True:
@@ -126,6 +139,10 @@ class Server:
             if self.proc.poll() is not None or time.monotonic() - t0 > 120:
                 raise RuntimeError(f"server did not start; see {logs / 'server.log'}")
             time.sleep(0.2)
+
+    def token(self, name: str, admin: bool = False) -> str:
+        """A new API token for ``name`` (the server reads the token file when it changes)."""
+        return TokenStore(self.data / "maxfs-tokens.json").create(name, admin=admin)
 
     def kill(self) -> None:
         _stop(self.proc, signal.SIGKILL)

@@ -1,8 +1,11 @@
-"""Bad requests to a real server: the status, the reason, and nothing stored changes."""
+"""Bad requests to a real server with auth and limits on: the status, the reason,
+and nothing stored changes (the whole data folder is byte-identical)."""
 
 from __future__ import annotations
 
 import hashlib
+import json
+import shutil
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -23,13 +26,28 @@ LIGHTS = synthetic.lights_uniform(K).tolist()
 GOOD = {"k": K, "height": H, "width": W, "dtype": "uint8", "lights": LIGHTS, "eps": 1.0, "tile": 8}
 
 
+MAX_OPEN, MAX_K, MAX_PIXELS = 3, 64, 1_000_000
+#: Free disk kept in reserve is set so that ~50 MB remain: small jobs fit, a 140 MB one does not.
+HEADROOM = 50 << 20
+
+
 @pytest.fixture(scope="module")
 def server(tmp_path_factory: pytest.TempPathFactory):
     tmp = tmp_path_factory.mktemp("http")
-    s = Server(tmp / "data", "", tmp, workers=1)
-    s.data = tmp / "data"
+    env = {
+        "MAXFS_MAX_OPEN_JOBS": str(MAX_OPEN),
+        "MAXFS_MAX_K": str(MAX_K),
+        "MAXFS_MAX_PIXELS": str(MAX_PIXELS),
+        "MAXFS_MIN_FREE_BYTES": str(shutil.disk_usage(tmp).free - HEADROOM),
+    }
+    s = Server(tmp / "data", "", tmp, workers=1, auth=True, env=env)
+    s.tokens = {"alice": s.token("alice"), "bob": s.token("bob"), "root": s.token("root", admin=True)}
     yield s
     s.kill()
+
+
+def _auth(server: Server, user: str) -> dict[str, str]:
+    return {"Authorization": f"Bearer {server.tokens[user]}"}
 
 
 def _snapshot(root: Path) -> dict[str, str]:
@@ -62,11 +80,35 @@ class Bad:
     reason: str
     uploaded: int = 0
     started: bool = False
+    extra_jobs: int = 0  # more open jobs of the same user before the request
     extra: dict[str, Any] = field(default_factory=dict)
 
 
 def _create(**changes: Any) -> Callable[[httpx.Client, str], httpx.Response]:
     return lambda http, jid: http.post("/jobs", json={**GOOD, **changes})
+
+
+def _as(headers: dict[str, str], method: str, path: str, **kw: Any):
+    """A request with only these credentials; ``{j}`` in ``path`` is the case's job id."""
+    return lambda http, jid: httpx.request(
+        method, str(http.base_url).rstrip("/") + path.format(j=jid), headers=headers, timeout=60, **kw
+    )
+
+
+def _as_user(user: str, method: str, path: str, **kw: Any):
+    """Like :func:`_as` with ``user``'s token (filled in when the case runs)."""
+    return lambda http, jid: _as({"Authorization": f"Bearer {http.tokens[user]}"}, method, path, **kw)(
+        http, jid
+    )
+
+
+def _raw_json(body: str):
+    """A create request with a body httpx would not encode (NaN)."""
+    return lambda http, jid: http.post("/jobs", content=body, headers={"Content-Type": "application/json"})
+
+
+def _too_many_jobs(http: httpx.Client, jid: str) -> httpx.Response:
+    return http.post("/jobs", json=GOOD)
 
 
 def _put(index: int | str, body: bytes, ctype: str = "application/octet-stream", **headers: str):
@@ -82,6 +124,7 @@ def _lying_put(http: httpx.Client, path: str, declared: int) -> httpx.Response:
     try:
         conn.putrequest("PUT", path)
         conn.putheader("Content-Type", "application/octet-stream")
+        conn.putheader("Authorization", http.headers["authorization"])
         conn.putheader("Content-Length", str(declared))
         conn.endheaders(b"\x00" * 4)
         r = conn.getresponse()
@@ -146,17 +189,91 @@ CASES = [
         started=True,
     ),
     Bad("unknown-preview", lambda h, j: h.get(f"/jobs/{j}/previews/x.png"), 404, "no preview"),
+    Bad(
+        "lights-nan",
+        _raw_json(json.dumps({**GOOD, "lights": [[float("nan"), 0, 1], *LIGHTS[1:]]})),
+        422,
+        "finite",
+    ),
+    Bad("tile-over-task-memory", _create(tile=4096), 422, "task budget"),
+    Bad("index-with-path", _put("..%2F0", b"\x00" * (H * W)), 404, "no job or route"),
+    Bad("result-name-with-path", lambda h, j: h.get(f"/jobs/{j}/results/..%2Fmaxfs-job.npy"), 404, "no"),
+    # auth: no token, a wrong one, another scheme; other users' jobs do not exist for them
+    Bad("no-token", _as({}, "GET", "/jobs/{j}"), 401, "needs an API token"),
+    Bad("wrong-token", _as({"Authorization": "Bearer mfs_x"}, "GET", "/jobs/{j}"), 401, "not valid"),
+    Bad("basic-scheme", _as({"Authorization": "Basic YTpi"}, "GET", "/jobs/{j}"), 401, "Bearer"),
+    Bad("no-token-create", _as({}, "POST", "/jobs", json=GOOD), 401, "API token"),
+    Bad("other-user-status", _as_user("bob", "GET", "/jobs/{j}"), 404, "no job"),
+    Bad(
+        "other-user-upload",
+        _as_user("bob", "PUT", "/jobs/{j}/images/0", content=b"\x00" * (H * W)),
+        404,
+        "no job",
+    ),
+    Bad("other-user-start", _as_user("bob", "POST", "/jobs/{j}/start"), 404, "no job", uploaded=K),
+    Bad("other-user-cancel", _as_user("bob", "DELETE", "/jobs/{j}"), 404, "no job"),
+    Bad(
+        "other-user-result",
+        _as_user("bob", "GET", "/jobs/{j}/results/normal.npy"),
+        404,
+        "no job",
+        uploaded=K,
+        started=True,
+    ),
+    Bad(
+        "other-user-zip",
+        _as_user("bob", "GET", "/jobs/{j}/results.zip"),
+        404,
+        "no job",
+        uploaded=K,
+        started=True,
+    ),
+    # limits
+    Bad("too-many-open-jobs", _too_many_jobs, 429, "unfinished jobs", extra_jobs=MAX_OPEN - 1),
+    Bad(
+        "k-over-limit",
+        _create(k=MAX_K + 1, lights=synthetic.lights_uniform(MAX_K + 1).tolist()),
+        413,
+        "MAX_K",
+    ),
+    Bad("pixels-over-limit", _create(height=2000, width=1000), 413, "MAX_PIXELS"),
+    Bad(
+        "disk-full",
+        _create(k=60, height=1000, width=1000, dtype="uint16", lights=synthetic.lights_uniform(60).tolist()),
+        507,
+        "free above its reserve",
+    ),
 ]
+
+
+def _close_open_jobs(server: Server) -> None:
+    """Cancel every unfinished job (as admin), so each case starts under the job limit."""
+    with httpx.Client(base_url=server.url, headers=_auth(server, "root"), timeout=60) as admin:
+        for job in admin.get("/jobs").json():
+            if job["state"] not in ("done", "failed", "cancelled"):
+                assert admin.delete(f"/jobs/{job['id']}").status_code == 200
+
+
+def test_catalogue_is_large_enough() -> None:
+    assert len(CASES) >= 25 and len({c.name for c in CASES}) == len(CASES)
 
 
 @pytest.mark.parametrize("case", CASES, ids=lambda c: c.name)
 def test_bad_request(server: Server, case: Bad) -> None:
-    with httpx.Client(base_url=server.url, timeout=60) as http:
-        jid = _job(http, case.uploaded, case.started)
-        before = _snapshot(server.data)
-        r = case.request(http, jid)
-        assert r.status_code == case.status, r.text
-        body = r.json()
-        assert set(body) == {"error", "detail"}
-        assert case.reason in body["detail"], body
-        assert _snapshot(server.data) == before, "a rejected request changed stored data"
+    with httpx.Client(base_url=server.url, headers=_auth(server, "alice"), timeout=60) as http:
+        http.tokens = server.tokens
+        try:
+            jid = _job(http, case.uploaded, case.started)
+            for _ in range(case.extra_jobs):
+                _job(http)
+            before = _snapshot(server.data)
+            r = case.request(http, jid)
+            assert r.status_code == case.status, r.text
+            body = r.json()
+            assert set(body) == {"error", "detail"}
+            assert case.reason in body["detail"], body
+            if r.status_code == 401:
+                assert r.headers["www-authenticate"] == "Bearer"
+            assert _snapshot(server.data) == before, "a rejected request changed stored data"
+        finally:
+            _close_open_jobs(server)

@@ -43,3 +43,15 @@ class JobCancelledError(MaxfsError):
 
 class PayloadTooLargeError(InvalidInputError):
     """A request body is larger than allowed or than the job expects."""
+
+
+class AuthError(MaxfsError):
+    """The request carries no API token, or one the server does not know."""
+
+
+class QuotaError(MaxfsError):
+    """A per-user limit is reached (e.g. open jobs); retry when a job has finished."""
+
+
+class InsufficientStorageError(MaxfsError, OSError):
+    """The server's disk cannot hold what the request would store."""

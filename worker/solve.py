@@ -32,7 +32,7 @@ from worker.problem import (
     make_thresholds,
     usable,
 )
-from worker.tiles import DEFAULT_TILE, tiles
+from worker.tiles import DEFAULT_TILE, Tile, tiles
 
 #: Per-pixel search budget of the exact solver before it falls back to the MILP.
 DEFAULT_MAX_NODES = 200_000
@@ -157,34 +157,54 @@ def solve_pixels(
 
 
 def estimate_job_eps(
-    read: Callable[[NDArray[np.intp], NDArray[np.intp]], NDArray],
+    read_block: Callable[[Tile], NDArray],
     L: NDArray[np.float64],
     obs: ObservationModel,
     mask: NDArray[np.bool_] | None,
     shape: tuple[int, int],
+    tile: int,
     request: str = "auto",
 ) -> float:
-    """Estimate eps from a fixed sample of pixels (:func:`eps_sample`).
+    """Estimate eps from a fixed sample of pixels in a few tiles (:func:`eps_sample`).
 
-    ``read(ys, xs)`` returns raw observations ``(k, n[, C])`` at those pixels, so
-    the in-process and the service paths see the same sample.
+    ``read_block(tile)`` returns the raw block ``(k, h, w[, C])`` of one tile, so
+    the in-process and the service paths see the same sample, and the service
+    reads k chunks per sampled tile instead of the whole stack.
     """
     if request != "auto":
         raise InvalidInputError(f"eps must be a positive number or 'auto', got {request!r}")
-    ys, xs = eps_sample(shape, mask)
-    grey, _, saturated = obs.prepare(read(ys, xs))
+    picks = eps_sample(shape, mask, tile)
+    if not picks:
+        raise InvalidInputError("cannot estimate eps: the mask selects no pixel; give eps explicitly")
+    raw = np.concatenate([read_block(t)[:, ys, xs] for t, ys, xs in picks], axis=1)
+    grey, _, saturated = obs.prepare(raw)
     ok = np.isfinite(grey) & (grey > 0) & ~saturated
     return estimate_eps(grey, ok, L, integer_valued=obs.integer_valued)
 
 
 def eps_sample(
-    shape: tuple[int, int], mask: NDArray[np.bool_] | None, n: int = 4096
-) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
-    """Pixels used to estimate eps: every s-th pixel of the mask, at most ``n``."""
-    flat = np.flatnonzero(mask) if mask is not None else np.arange(shape[0] * shape[1])
-    stride = max(1, -(-flat.size // n))
-    ys, xs = np.unravel_index(flat[::stride], shape)
-    return ys.astype(np.intp), xs.astype(np.intp)
+    shape: tuple[int, int], mask: NDArray[np.bool_] | None, tile: int, n: int = 4096, max_tiles: int = 4
+) -> list[tuple[Tile, NDArray[np.intp], NDArray[np.intp]]]:
+    """Pixels used to estimate eps: up to ``max_tiles`` tiles spread over the object
+    (evenly spaced in raster order among those at least half as covered by the mask
+    as the best one), and in each every s-th masked pixel, ``n`` pixels in all."""
+    grid = list(tiles(shape[0], shape[1], tile))
+    cover = np.array(
+        [t.shape[0] * t.shape[1] if mask is None else int(mask[t.y0 : t.y1, t.x0 : t.x1].sum()) for t in grid]
+    )
+    if cover.max(initial=0) == 0:
+        return []
+    good = [t for t, c in zip(grid, cover, strict=True) if c > 0 and 2 * c >= cover.max()]
+    chosen = sorted({int(j) for j in np.linspace(0, len(good) - 1, min(max_tiles, len(good)))})
+    per = -(-n // len(chosen))
+    out = []
+    for j in chosen:
+        t = good[j]
+        local = np.ones(t.shape, bool) if mask is None else np.asarray(mask[t.y0 : t.y1, t.x0 : t.x1], bool)
+        flat = np.flatnonzero(local)
+        ys, xs = np.unravel_index(flat[:: max(1, -(-flat.size // per))], t.shape)
+        out.append((t, ys.astype(np.intp), xs.astype(np.intp)))
+    return out
 
 
 @dataclass(frozen=True)
@@ -288,7 +308,7 @@ def solve(
         if m.shape != (H, W):
             raise InvalidInputError(f"mask has shape {m.shape}, images are {H} x {W}")
     if isinstance(eps, str):
-        eps_v = estimate_job_eps(lambda ys, xs: arr[:, ys, xs], L, obs, m, (H, W), eps)
+        eps_v = estimate_job_eps(lambda t: arr[:, t.y0 : t.y1, t.x0 : t.x1], L, obs, m, (H, W), tile, eps)
     else:
         eps_v = float(eps)
     th = make_thresholds(k, eps_v, shadow=shadow, saturation=saturation, box_factor=box_factor)

@@ -76,22 +76,16 @@ def run_tile(job_dir: str, tile_index: int, params_hash: str) -> TileOutcome:
 
 
 def estimate_store_eps(job_dir: str) -> float:
-    """eps="auto": estimate from the same pixel sample the in-process path uses."""
+    """eps="auto": estimate from the same tiles and pixels the in-process path uses."""
     store = JobStore.open(Path(job_dir), mode="r")
     spec = store.spec
-    images = store.group["images"]
-
-    def read(ys: np.ndarray, xs: np.ndarray) -> np.ndarray:
-        def at(i: int, c: int | None) -> np.ndarray:
-            coords = (np.full_like(ys, i), ys, xs) + (() if c is None else (np.full_like(ys, c),))
-            return np.asarray(images.get_coordinate_selection(coords))
-
-        if spec.channels is None:
-            return np.stack([at(i, None) for i in range(spec.k)])
-        return np.stack([np.stack([at(i, c) for c in range(spec.channels)], axis=-1) for i in range(spec.k)])
-
     return estimate_job_eps(
-        read, spec.lights, store.observation_model, store.read_mask(), (spec.height, spec.width)
+        lambda t: store.read_tile(t)[0],
+        spec.lights,
+        store.observation_model,
+        store.read_mask(),
+        (spec.height, spec.width),
+        store.params.tile,
     )
 
 

@@ -45,3 +45,44 @@ def tiles(height: int, width: int, tile: int) -> Iterator[Tile]:
         for tx in range(nx):
             y0, x0 = ty * tile, tx * tile
             yield Tile(ty * nx + tx, ty, tx, y0, min(y0 + tile, height), x0, min(x0 + tile, width))
+
+
+#: Bytes one tile task may hold in arrays (the service's ``MAXFS_TASK_MEMORY``).
+DEFAULT_TASK_MEMORY = 512 << 20
+#: Upper bound on pixels x images per tile, so a task lasts seconds, not minutes.
+WORK_PER_TILE = 1 << 22
+MIN_TILE, MAX_TILE, TILE_STEP = 32, 512, 16
+#: Auto tiles are small enough that an image has at least this many (work to spread).
+MIN_TILES = 16
+
+
+def tile_bytes_per_pixel(k: int, channels: int | None, itemsize: int) -> int:
+    """Peak bytes a tile task holds per pixel.
+
+    Counted from the arrays of one task: the raw block (``k*C*itemsize``), the
+    float64 copies made by ``ObservationModel.prepare`` and the per-channel
+    albedo refit (three of ``k*C*8``), the grey intensities and the solver's
+    per-pixel copies (four of ``k*8``), and the boolean masks. ``bench/scale.py``
+    checks the model against the measured RSS of workers.
+    """
+    C = channels or 1
+    return k * (C * itemsize + 24 * C + 48) + 256
+
+
+def auto_tile(
+    k: int, channels: int | None, itemsize: int, memory: int = DEFAULT_TASK_MEMORY, pixels: int | None = None
+) -> int:
+    """Tile edge for a job: the largest multiple of 16 that fits the memory budget,
+    keeps ``tile**2 * k <= WORK_PER_TILE`` and gives an image of ``pixels`` pixels at
+    least :data:`MIN_TILES` tiles, within [32, 512]. It depends only on the job, never
+    on the cluster, because the tile size is part of the result (see above)."""
+    by_memory = (memory / tile_bytes_per_pixel(k, channels, itemsize)) ** 0.5
+    by_work = (WORK_PER_TILE / max(k, 1)) ** 0.5
+    by_count = (pixels / MIN_TILES) ** 0.5 if pixels else float("inf")
+    edge = int(min(by_memory, by_work, by_count)) // TILE_STEP * TILE_STEP
+    return max(MIN_TILE, min(MAX_TILE, edge))
+
+
+def tile_memory(tile: int, k: int, channels: int | None, itemsize: int) -> int:
+    """Estimated peak bytes of one task for a tile edge (see :func:`tile_bytes_per_pixel`)."""
+    return tile * tile * tile_bytes_per_pixel(k, channels, itemsize)
