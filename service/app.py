@@ -142,7 +142,7 @@ async def stage_body(request: Request, folder: FsPath, name: str, limit: int) ->
     fd, tmp = tempfile.mkstemp(prefix=f"{TEMP_PREFIX}{name}-", suffix=".part", dir=folder)
     path, n = FsPath(tmp), 0
     try:
-        with os.fdopen(fd, "wb") as f:
+        with os.fdopen(fd, "wb", buffering=0) as f:  # unbuffered: what arrived is on disk
             async for chunk in request.stream():
                 n += len(chunk)
                 if n > limit:

@@ -99,7 +99,12 @@ async def run_job(
             futures.pop(fut.key, None)
             try:
                 out: TileOutcome = await fut
-            except Exception as e:  # a tile failed after its retries: the job fails
+            except Exception as e:  # a tile failed after its retries, or the cluster went away
+                if client.status != "running" or "scheduler-connection-lost" in str(e):
+                    raise RuntimeError(
+                        "lost the Dask scheduler while the job ran; finished tiles are kept: "
+                        "start the job again once the scheduler is back"
+                    ) from e
                 raise RuntimeError(
                     f"tile {index_of.get(fut.key, '?')} failed: {type(e).__name__}: {e}"
                 ) from e

@@ -46,8 +46,8 @@ def _stop(p: subprocess.Popen, sig: int = signal.SIGKILL) -> None:
 class DaskCluster:
     """``dask scheduler`` plus ``n`` single-threaded ``dask worker`` processes (no nanny)."""
 
-    def __init__(self, logs: Path, n_workers: int = 2) -> None:
-        self.port = free_port()
+    def __init__(self, logs: Path, n_workers: int = 2, port: int | None = None) -> None:
+        self.port = port or free_port()
         self.address = f"tcp://127.0.0.1:{self.port}"
         self.logs = logs
         self.scheduler = _spawn(
