@@ -30,7 +30,7 @@ from starlette.background import BackgroundTask
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from service.jobs import TEMP_PREFIX, JobManager, npy_bytes
-from service.previews import PREVIEWS, render
+from service.previews import PREVIEW_INPUTS, PREVIEWS, render
 from service.settings import Settings
 from storage.imageio import decode_bytes, encode_png
 from storage.layout import JobSpec, JobStore
@@ -214,8 +214,10 @@ class JobRoutes:
 
     def _body(self, request: Request, job_id: str) -> dict[str, Any]:
         rec = self.m.access(job_id, _user(request))
-        store = self.m.store(job_id)
-        return status_body(rec, str(request.base_url).rstrip("/"), int(store.uploaded().sum()), store.spec.k)
+        k = self.m.spec(job_id).k
+        # a started job has every image; only before that is the upload array read (k small files)
+        uploaded = k if rec.started_at is not None else int(self.m.store(job_id).uploaded().sum())
+        return status_body(rec, str(request.base_url).rstrip("/"), uploaded, k)
 
     async def create(self, req: CreateJob, request: Request) -> JSONResponse:
         """Create a job (metadata only); upload images next."""
@@ -273,7 +275,7 @@ class JobRoutes:
         Idempotent: uploading the same index again replaces it, until the job starts.
         """
         store = self._before_upload(request, job_id, "images can be uploaded")
-        spec = store.spec
+        spec = self.m.spec(job_id)
         store.check_index(index)
         raw = request.headers.get("content-type", "application/octet-stream").startswith(
             "application/octet-stream"
@@ -335,7 +337,13 @@ class JobRoutes:
     async def result(self, job_id: str, name: str, request: Request) -> Response:
         """One output array as NPY (normal, albedo, albedo_rgb, inliers, inlier_count, optimal, mask)."""
         self.m.access(job_id, _user(request))
-        arr = self.m.store(job_id).read_output(name)
+        store = self.m.store(job_id)
+        if name in store.group and store.group[name].nbytes > self.s.max_result_bytes:
+            raise PayloadTooLargeError(
+                f"{name} is {store.group[name].nbytes / 2**20:.0f} MiB, more than one NPY answer may be "
+                f"({self.s.max_result_bytes / 2**20:.0f} MiB); fetch results.zip (`maxfs fetch`) instead"
+            )
+        arr = store.read_output(name)
         return Response(
             npy_bytes(arr),
             media_type="application/octet-stream",
@@ -348,7 +356,7 @@ class JobRoutes:
         if name not in PREVIEWS:
             raise NotFoundError(f"no preview {name!r}; available: {', '.join(PREVIEWS)}")
         store = self.m.store(job_id)
-        arrays = {n: store.read_output(n) for n in store.output_names()}
+        arrays = {n: store.read_output(n) for n in store.output_names() if n in PREVIEW_INPUTS}
         return Response(encode_png(render(name, arrays, store.spec.k)), media_type="image/png")
 
     async def zip(self, job_id: str, request: Request) -> FileResponse:

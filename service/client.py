@@ -7,7 +7,7 @@ import shutil
 import tempfile
 import time
 import zipfile
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -16,15 +16,29 @@ import numpy as np
 from numpy.typing import NDArray
 
 from storage.datasets import load_folder
-from worker.errors import ConflictError, InvalidInputError, MaxfsError, NotFoundError, PayloadTooLargeError
+from worker.errors import (
+    AuthError,
+    ConflictError,
+    InsufficientStorageError,
+    InvalidInputError,
+    MaxfsError,
+    NotFoundError,
+    PayloadTooLargeError,
+    QuotaError,
+)
 
 _BY_STATUS: dict[int, type[MaxfsError]] = {
+    401: AuthError,
     404: NotFoundError,
     409: ConflictError,
     413: PayloadTooLargeError,
     422: InvalidInputError,
+    429: QuotaError,
+    507: InsufficientStorageError,
 }
 FINAL_STATES = ("done", "failed", "cancelled")
+#: Bytes per piece of a streamed upload.
+UPLOAD_PIECE = 1 << 20
 
 
 class MaxfsClient:
@@ -58,12 +72,19 @@ class MaxfsClient:
         return self._call("POST", "/jobs", json=meta).json()
 
     def upload_image(self, job_id: str, index: int, image: NDArray) -> dict[str, Any]:
-        data = np.ascontiguousarray(image, dtype=image.dtype.newbyteorder("<")).tobytes()
+        """Send one image as raw little-endian bytes, in 1 MiB pieces (no copy of the image)."""
+        arr = np.ascontiguousarray(image, dtype=image.dtype.newbyteorder("<"))
+        view = memoryview(arr.reshape(-1)).cast("B")
+
+        def pieces() -> Iterator[bytes]:
+            for o in range(0, len(view), UPLOAD_PIECE):
+                yield bytes(view[o : o + UPLOAD_PIECE])
+
         return self._call(
             "PUT",
             f"/jobs/{job_id}/images/{index}",
-            content=data,
-            headers={"Content-Type": "application/octet-stream"},
+            content=pieces(),
+            headers={"Content-Type": "application/octet-stream", "Content-Length": str(arr.nbytes)},
         ).json()
 
     def upload_mask(self, job_id: str, mask: NDArray[np.bool_]) -> dict[str, Any]:
@@ -136,7 +157,10 @@ class MaxfsClient:
         return out
 
     def submit_folder(self, folder: Path, **params: Any) -> str:
-        """Create a job from a dataset folder, stream its images one by one, start it."""
+        """Create a job from a dataset folder, stream its images one by one, start it.
+
+        Only one decoded image is in memory at a time (NPY stacks are memory-mapped).
+        """
         ds = load_folder(folder)
         meta: dict[str, Any] = {
             "k": ds.k,

@@ -63,7 +63,7 @@ class JobManager:
         self.cluster: LocalCluster | None = None
         self.runs: dict[str, asyncio.Task] = {}
         self.locks: dict[str, asyncio.Lock] = {}
-        self.closing = False
+        self.specs: dict[str, JobSpec] = {}
 
     # -- life cycle ---------------------------------------------------------------------------
     async def start(self) -> None:
@@ -127,7 +127,6 @@ class JobManager:
         return self.client
 
     async def close(self) -> None:
-        self.closing = True
         runs = list(self.runs.values())
         for task in runs:
             task.cancel()
@@ -207,6 +206,12 @@ class JobManager:
 
     def store(self, job_id: str, mode: str = "r") -> JobStore:
         return JobStore.open(self.job_dir(job_id), mode=mode)
+
+    def spec(self, job_id: str) -> JobSpec:
+        """A job's input spec (it never changes, so it is read once)."""
+        if job_id not in self.specs:
+            self.specs[job_id] = self.store(job_id).spec
+        return self.specs[job_id]
 
     def list(self, user: User, everyone: bool = True) -> list[JobRecord]:
         """Jobs ``user`` may see (an admin sees all when ``everyone``), oldest first."""

@@ -16,7 +16,7 @@ import numpy as np
 from distributed import Client, LocalCluster
 
 from service.orchestrator import ProgressFn, run_job, warm_workers
-from service.previews import PREVIEWS, render
+from service.previews import PREVIEW_INPUTS, PREVIEWS, render
 from storage.datasets import Dataset
 from storage.imageio import encode_png
 from storage.layout import JobSpec, JobStore
@@ -108,7 +108,7 @@ def write_previews(store: JobStore) -> list[Path]:
     """PNG previews under ``previews/`` in the job directory."""
     d = store.path / "previews"
     d.mkdir(exist_ok=True)
-    arrays = {n: store.read_output(n) for n in store.output_names()}
+    arrays = {n: store.read_output(n) for n in store.output_names() if n in PREVIEW_INPUTS}
     paths = []
     for name in PREVIEWS:
         p = d / f"{name}.png"

@@ -24,6 +24,8 @@ def scaled_grey(values: NDArray[np.floating], top: float | None = None) -> NDArr
 
 
 PREVIEWS = ("normal", "albedo", "inlier_count")
+#: Output arrays the previews read (never ``inliers``, which is k times larger).
+PREVIEW_INPUTS = ("normal", "albedo", "albedo_rgb", "inlier_count")
 
 
 def render(name: str, arrays: dict[str, NDArray], k: int) -> NDArray[np.uint8]:

@@ -36,6 +36,8 @@ class Settings(BaseSettings):
     #: Largest accepted request body for encoded (PNG/TIFF) images, bytes; raw uploads must
     #: match the job's image size exactly.
     max_upload_bytes: int = 1 << 30
+    #: Largest output array served as one NPY (``/results/NAME.npy``); larger ones via results.zip.
+    max_result_bytes: int = 256 << 20
     #: Most images per job.
     max_k: int = 1000
     #: Most pixels per image (H x W).

@@ -151,11 +151,44 @@ def _diligent(folder: Path) -> Dataset:
     return ds
 
 
+class _NpyImages:
+    """Images of an ``images.npy`` stack, read one at a time with plain file reads.
+
+    Not a memory map: mapped pages of a large stack count toward the reader's
+    resident memory, which would then grow with k.
+    """
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        try:
+            with open(path, "rb") as f:
+                version = np.lib.format.read_magic(f)
+                read_header = {
+                    (1, 0): np.lib.format.read_array_header_1_0,
+                    (2, 0): np.lib.format.read_array_header_2_0,
+                }.get(version)
+                if read_header is None:
+                    raise ValueError(f"NPY format version {version} is not supported; save with np.save")
+                shape, fortran, dtype = read_header(f)
+                self.offset = f.tell()
+        except (ValueError, OSError) as e:
+            raise DatasetError(f"{path} is not a readable NPY file: {e}") from None
+        if fortran:
+            raise DatasetError(f"{path} is stored in Fortran order; save it with np.save(C-ordered array)")
+        self.shape, self.dtype, self.ndim = tuple(shape), np.dtype(dtype), len(shape)
+
+    def __getitem__(self, i: int) -> NDArray:
+        count = int(np.prod(self.shape[1:]))
+        with open(self.path, "rb") as f:
+            f.seek(self.offset + i * count * self.dtype.itemsize)
+            img = np.fromfile(f, dtype=self.dtype, count=count)
+        if img.size != count:
+            raise DatasetError(f"{self.path} is truncated: image {i} is incomplete")
+        return img.reshape(self.shape[1:])
+
+
 def _npy(folder: Path) -> Dataset:
-    try:
-        stack = np.load(folder / "images.npy", mmap_mode="r")
-    except ValueError as e:
-        raise DatasetError(f"{folder}/images.npy is not a readable NPY file: {e}") from None
+    stack = _NpyImages(folder / "images.npy")
     if stack.ndim not in (3, 4) or (stack.ndim == 4 and stack.shape[3] != 3):
         raise DatasetError(f"{folder}/images.npy must be (k, H, W) or (k, H, W, 3), got {stack.shape}")
     if str(stack.dtype) not in ("uint8", "uint16", "float32"):
@@ -180,7 +213,7 @@ def _npy(folder: Path) -> Dataset:
         folder.name,
         "npy",
         k,
-        lambda i: np.ascontiguousarray(stack[i]),
+        lambda i: stack[i],
         lights=lights,
         intensities=inten,
         mask=mask,
