@@ -72,6 +72,17 @@ def read_image(path: Path) -> NDArray:
         raise DatasetError(str(e)) from None
 
 
+def _inside(root: Path, name: str, listing: Path) -> Path:
+    """``root / name``, refusing names that are absolute or climb out with ``..``."""
+    p = Path(name)
+    if p.is_absolute() or ".." in p.parts:
+        raise DatasetError(
+            f"{listing}: entry {name!r} points outside the dataset folder; list images by paths "
+            "relative to it, without '..'"
+        )
+    return root / p
+
+
 def _read_matrix(path: Path, cols: int, what: str, count_line: bool = False) -> NDArray[np.float64]:
     try:
         lines = [ln for ln in path.read_text().split("\n") if ln.strip()]
@@ -125,7 +136,7 @@ def _diligent(folder: Path) -> Dataset:
     names = [ln.strip() for ln in (folder / "filenames.txt").read_text().splitlines() if ln.strip()]
     if len(names) < 3:
         raise DatasetError(f"{folder}/filenames.txt lists {len(names)} images; at least 3 are needed")
-    paths = [folder / n for n in names]
+    paths = [_inside(folder, n, folder / "filenames.txt") for n in names]
     missing = [str(p) for p in paths if not p.exists()]
     if missing:
         raise DatasetError(f"{folder}: {len(missing)} listed images are missing, e.g. {missing[0]}")
@@ -235,7 +246,7 @@ def _uw(folder: Path) -> Dataset:
     def resolve(p: str) -> Path:
         parts = Path(p).parts
         rel = Path(*parts[1:]) if parts and parts[0] == "psmImages" else Path(p)
-        return root / rel
+        return _inside(root, str(rel), listing)
 
     paths = [resolve(p) for p in entries[:k]]
     missing = [str(p) for p in paths if not p.exists()]

@@ -93,6 +93,16 @@ def _break(kind: str, root: Path) -> Path:
         (folder / "light_directions.txt").write_text("a b c\n" * 4)
     elif kind == "no-dataset":
         (folder / "filenames.txt").unlink()
+    elif kind == "name-with-dotdot":
+        (folder / "filenames.txt").write_text("001.png\n002.png\n../003.png\n004.png\n")
+    elif kind == "absolute-name":
+        (folder / "filenames.txt").write_text(f"001.png\n002.png\n{folder / '003.png'}\n004.png\n")
+    elif kind == "npy-truncated":
+        np.save(folder / "images.npy", np.zeros((4, 4, 4), np.uint8))
+        (folder / "filenames.txt").unlink()
+        np.savetxt(folder / "lights.txt", synthetic.lights_uniform(4))
+        data = (folder / "images.npy").read_bytes()
+        (folder / "images.npy").write_bytes(data[:-8])
     return folder
 
 
@@ -106,6 +116,9 @@ def _break(kind: str, root: Path) -> Path:
         ("not-unit-lights", "unit vectors"),
         ("not-numbers", "not a table of numbers"),
         ("no-dataset", "is not a recognised dataset"),
+        ("name-with-dotdot", "outside the dataset folder"),
+        ("absolute-name", "outside the dataset folder"),
+        ("npy-truncated", "truncated"),
     ],
 )
 def test_broken_folders_give_clear_errors(tmp_path: Path, kind: str, message: str) -> None:

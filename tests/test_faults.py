@@ -133,7 +133,18 @@ def test_server_killed_mid_upload_restarts_in_a_true_state(
 ) -> None:
     images, lights, ref = scene
     data = tmp_path / "data"
-    server = Server(data, "", tmp_path, workers=2)
+    servers = [Server(data, "", tmp_path, workers=2)]
+    try:
+        _kill_mid_upload_then_restart(servers, data, tmp_path, images, lights, ref)
+    finally:
+        for s in servers:
+            s.kill()
+
+
+def _kill_mid_upload_then_restart(
+    servers: list[Server], data: Path, tmp_path: Path, images: np.ndarray, lights: np.ndarray, ref: Solution
+) -> None:
+    server = servers[0]
     with MaxfsClient(server.url) as c:
         done_id = _create(c, lights)  # a finished job, which must stay finished
         for i in range(K):
@@ -158,20 +169,35 @@ def test_server_killed_mid_upload_restarts_in_a_true_state(
     done_before = {p: p.read_bytes() for p in (data / "jobs" / done_id).rglob("*") if p.is_file()}
 
     server = Server(data, "", tmp_path, port=server.port, workers=2)
+    servers.append(server)
+    assert not list(job_dir.glob(".maxfs-*")), "staged upload left behind"
+    assert not orphan.exists(), "half-created job folder left behind"
+    assert load_record(data / "jobs" / done_id).state.value == "done"
+    assert {p: p.read_bytes() for p in (data / "jobs" / done_id).rglob("*") if p.is_file()} == done_before
+    with MaxfsClient(server.url) as c:
+        st = c.status(job_id)
+        assert st["state"] == "uploading" and st["uploaded"] == 6, st
+        assert [j["id"] for j in c.jobs()] == [done_id, job_id]
+        for i in range(6, K):
+            c.upload_image(job_id, i, images[i])
+        c.start(job_id)
+        assert c.wait(job_id, poll=0.1, timeout=180)["state"] == "done"
+    _assert_equal(JobStore.open(job_dir, mode="r"), ref)
+    assert (job_dir / RECORD_NAME).exists()
+
+
+def test_embedded_cluster_listens_on_loopback_only(tmp_path: Path) -> None:
+    """The server, its scheduler, workers and HTTP endpoints: nothing listens beyond 127.0.0.1."""
+    import psutil
+
+    server = Server(tmp_path / "data", "", tmp_path, workers=1)
     try:
-        assert not list(job_dir.glob(".maxfs-*")), "staged upload left behind"
-        assert not orphan.exists(), "half-created job folder left behind"
-        assert load_record(data / "jobs" / done_id).state.value == "done"
-        assert {p: p.read_bytes() for p in (data / "jobs" / done_id).rglob("*") if p.is_file()} == done_before
-        with MaxfsClient(server.url) as c:
-            st = c.status(job_id)
-            assert st["state"] == "uploading" and st["uploaded"] == 6, st
-            assert [j["id"] for j in c.jobs()] == [done_id, job_id]
-            for i in range(6, K):
-                c.upload_image(job_id, i, images[i])
-            c.start(job_id)
-            assert c.wait(job_id, poll=0.1, timeout=180)["state"] == "done"
-        _assert_equal(JobStore.open(job_dir, mode="r"), ref)
-        assert (job_dir / RECORD_NAME).exists()
+        procs = [psutil.Process(server.proc.pid), *psutil.Process(server.proc.pid).children(recursive=True)]
+        pids = {p.pid for p in procs}
+        listening = [
+            c.laddr for c in psutil.net_connections(kind="inet") if c.status == "LISTEN" and c.pid in pids
+        ]
+        assert len(listening) >= 3, listening  # HTTP, scheduler, worker (at least)
+        assert all(addr.ip == "127.0.0.1" for addr in listening), listening
     finally:
         server.kill()
