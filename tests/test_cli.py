@@ -62,6 +62,10 @@ def test_run_uw_object_writes_sane_outputs(tmp_path: Path, obj: str) -> None:
         (["run", str(UW), "-o", "x.zarr"], "is not a recognised dataset"),
         (["run", str(UW / "cat"), "-o", "x.zarr", "--eps", "-2"], "eps must be positive"),
         (["status", "0" * 32, "--server", "http://127.0.0.1:9"], "cannot talk to the server"),
+        (["run", str(UW / "cat"), "-o", "x.zarr", "--tile", "4096"], "task budget"),
+        (["serve", "--no-auth", "--host", "0.0.0.0"], "refusing to serve without auth"),
+        (["token", "create", "../alice", "--data-dir", "d"], "is not allowed"),
+        (["token", "revoke", "nobody", "--data-dir", "d"], "no user 'nobody'"),
     ],
 )
 def test_cli_errors_are_messages_not_tracebacks(tmp_path: Path, args: list[str], message: str) -> None:
@@ -70,3 +74,23 @@ def test_cli_errors_are_messages_not_tracebacks(tmp_path: Path, args: list[str],
     assert message in r.stderr
     assert "Traceback" not in r.stderr
     assert not (tmp_path / "x.zarr").exists()
+
+
+def test_token_create_list_revoke(tmp_path: Path) -> None:
+    from storage.tokens import TokenStore
+
+    d = str(tmp_path / "data")
+    r = _maxfs("token", "create", "alice", "--data-dir", d)
+    assert r.returncode == 0, r.stderr
+    token = r.stdout.strip()
+    assert token.startswith("mfs_") and len(token) > 40
+    assert _maxfs("token", "create", "root", "--admin", "--data-dir", d).returncode == 0
+    again = _maxfs("token", "create", "alice", "--data-dir", d)
+    assert again.returncode == 2 and "already has a token" in again.stderr
+    assert _maxfs("token", "list", "--data-dir", d).stdout.split("\n")[:2] == ["alice", "root  admin"]
+    store = TokenStore(tmp_path / "data" / "maxfs-tokens.json")
+    assert store.authenticate(token).name == "alice"
+    assert token not in (tmp_path / "data" / "maxfs-tokens.json").read_text(), "token stored in clear"
+    assert (tmp_path / "data" / "maxfs-tokens.json").stat().st_mode & 0o077 == 0
+    assert _maxfs("token", "revoke", "alice", "--data-dir", d).returncode == 0
+    assert store.authenticate(token) is None
