@@ -1,7 +1,7 @@
 """The HTTP API (FastAPI). Build it with :func:`create_app`; serve it with uvicorn.
 
 Every error is JSON ``{"error": <class>, "detail": <what is wrong and how to fix it>}``
-with the status from :data:`STATUS` (one map from exception class to code).
+with the status from :data:`service.statuses.STATUS` (one map from exception class to code).
 
 Every ``/jobs`` route needs ``Authorization: Bearer <token>`` unless the server
 runs with auth off; a job of another user answers 404, exactly like a job that
@@ -32,6 +32,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from service.jobs import TEMP_PREFIX, JobManager, npy_bytes
 from service.previews import PREVIEW_INPUTS, PREVIEWS, render
 from service.settings import Settings
+from service.statuses import status_of
 from storage.imageio import decode_bytes, encode_png
 from storage.layout import JobSpec, JobStore
 from storage.params import JobParams
@@ -40,27 +41,11 @@ from storage.tokens import LOCAL_USER, TokenStore, User
 from worker.errors import (
     AuthError,
     ConflictError,
-    InsufficientStorageError,
     InvalidInputError,
     MaxfsError,
     NotFoundError,
     PayloadTooLargeError,
-    QuotaError,
-    StoreError,
 )
-
-#: Exception class -> HTTP status; the first matching base class wins.
-STATUS: list[tuple[type[Exception], int]] = [
-    (AuthError, 401),
-    (NotFoundError, 404),
-    (ConflictError, 409),
-    (PayloadTooLargeError, 413),
-    (InvalidInputError, 422),
-    (QuotaError, 429),
-    (InsufficientStorageError, 507),
-    (StoreError, 500),
-    (MaxfsError, 400),
-]
 
 
 class CreateJob(BaseModel):
@@ -235,18 +220,16 @@ class JobRoutes:
                 f"lights must be {req.k} rows of 3 numbers, got shape {np.shape(req.lights)}"
             )
         spec = spec.validate()
-        tile = spec.auto_tile(self.s.task_memory) if req.tile == "auto" else req.tile
         params = JobParams.build(
             eps=req.eps,
             solver=req.solver,
-            tile=tile,
+            tile=spec.resolve_tile(req.tile, self.s.task_memory),
             shadow=req.shadow,
             saturation=req.saturation,
             box_factor=req.box_factor,
             max_nodes=req.max_nodes,
             milp_time_limit=req.milp_time_limit,
         )
-        spec.check_tile(params.tile, self.s.task_memory)
         rec = self.m.create(spec, params, _user(request))
         body = self._body(request, rec.id)
         return JSONResponse(body, status_code=201, headers={"Location": body["links"]["self"]})
@@ -275,7 +258,7 @@ class JobRoutes:
         Idempotent: uploading the same index again replaces it, until the job starts.
         """
         store = self._before_upload(request, job_id, "images can be uploaded")
-        spec = self.m.spec(job_id)
+        spec = store.spec
         store.check_index(index)
         raw = request.headers.get("content-type", "application/octet-stream").startswith(
             "application/octet-stream"
@@ -372,7 +355,7 @@ class JobRoutes:
 
 
 def _error_response(exc: Exception) -> JSONResponse:
-    code = next((c for cls, c in STATUS if isinstance(exc, cls)), 500)
+    code = status_of(exc)
     headers = {"WWW-Authenticate": "Bearer"} if code == 401 else None
     return JSONResponse({"error": type(exc).__name__, "detail": str(exc)}, status_code=code, headers=headers)
 

@@ -77,10 +77,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     ds = load_folder(args.folder)
     spec = JobSpec(ds.k, ds.height, ds.width, ds.channels, ds.dtype, ds.lights, ds.intensities).validate()
     kw = _params(args)
-    if kw["tile"] == "auto":
-        kw["tile"] = spec.auto_tile(settings.task_memory)
-    spec.check_tile(kw["tile"], settings.task_memory)
-    params = JobParams.build(**kw)
+    params = JobParams.build(**kw | {"tile": spec.resolve_tile(kw["tile"], settings.task_memory)})
     print(f"{ds.name}: {ds.k} images of {ds.height} x {ds.width} ({ds.layout}, {ds.dtype})", file=sys.stderr)
     store, note = ingest(ds, Path(args.output), params)
     if note:

@@ -15,27 +15,10 @@ import httpx
 import numpy as np
 from numpy.typing import NDArray
 
+from service.statuses import error_for_status
 from storage.datasets import load_folder
-from worker.errors import (
-    AuthError,
-    ConflictError,
-    InsufficientStorageError,
-    InvalidInputError,
-    MaxfsError,
-    NotFoundError,
-    PayloadTooLargeError,
-    QuotaError,
-)
+from worker.errors import ConflictError, MaxfsError
 
-_BY_STATUS: dict[int, type[MaxfsError]] = {
-    401: AuthError,
-    404: NotFoundError,
-    409: ConflictError,
-    413: PayloadTooLargeError,
-    422: InvalidInputError,
-    429: QuotaError,
-    507: InsufficientStorageError,
-}
 FINAL_STATES = ("done", "failed", "cancelled")
 #: Bytes per piece of a streamed upload.
 UPLOAD_PIECE = 1 << 20
@@ -64,7 +47,7 @@ class MaxfsClient:
                 detail = r.json().get("detail", r.text)
             except ValueError:
                 detail = r.text
-            raise _BY_STATUS.get(r.status_code, MaxfsError)(f"server said {r.status_code}: {detail}")
+            raise error_for_status(r.status_code)(f"server said {r.status_code}: {detail}")
         return r
 
     # -- jobs -------------------------------------------------------------------------------
@@ -137,7 +120,7 @@ class MaxfsClient:
             with self.http.stream("GET", f"/jobs/{job_id}/results.zip") as r:
                 if r.status_code >= 400:
                     r.read()
-                    raise _BY_STATUS.get(r.status_code, MaxfsError)(f"server said {r.status_code}: {r.text}")
+                    raise error_for_status(r.status_code)(f"server said {r.status_code}: {r.text}")
                 for chunk in r.iter_bytes():
                     tmp.write(chunk)
             tmp.seek(0)

@@ -112,6 +112,13 @@ class JobSpec:
         """Tile edge for this stack and a per-task memory budget (see :func:`worker.tiles.auto_tile`)."""
         return auto_tile(self.k, self.channels, self.itemsize, memory, self.pixels)
 
+    def resolve_tile(self, tile: int | str, memory: int) -> int:
+        """``"auto"`` to :meth:`auto_tile`; a tile edge given by hand must fit ``memory``."""
+        if tile == "auto":
+            return self.auto_tile(memory)
+        self.check_tile(int(tile), memory)
+        return int(tile)
+
     def check_tile(self, tile: int, memory: int) -> None:
         """Refuse a tile edge whose task would need more than ``memory`` bytes."""
         need = tile_memory(tile, self.k, self.channels, self.itemsize)
