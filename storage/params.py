@@ -8,7 +8,7 @@ from dataclasses import asdict, dataclass, replace
 from typing import Any
 
 from worker.errors import InvalidInputError
-from worker.problem import DEFAULT_BOX_FACTOR
+from worker.problem import DEFAULT_BOX_FACTOR, check_options
 from worker.solve import DEFAULT_MAX_NODES, DEFAULT_MILP_TIME_LIMIT, Solver
 from worker.tiles import DEFAULT_TILE
 
@@ -44,35 +44,35 @@ class JobParams:
         max_nodes: int = DEFAULT_MAX_NODES,
         milp_time_limit: float = DEFAULT_MILP_TIME_LIMIT,
     ) -> JobParams:
-        """Validate user-facing parameters."""
+        """Validate user-facing parameters (:func:`worker.problem.check_options`, the one
+        validator the library, the CLI and HTTP share) and build them."""
         try:
             solver = Solver(solver).value
         except ValueError:
             raise InvalidInputError(
                 f"unknown solver {solver!r}; choose one of {', '.join(s.value for s in Solver)}"
             ) from None
-        if isinstance(eps, str):
-            if eps != "auto":
-                try:
-                    eps = float(eps)
-                except ValueError:
-                    raise InvalidInputError(f"eps must be a positive number or 'auto', got {eps!r}") from None
-        if not isinstance(eps, str) and not (eps > 0 and eps < float("inf")):
-            raise InvalidInputError(f"eps must be a positive number or 'auto', got {eps!r}")
-        if not 8 <= tile <= 4096:
-            raise InvalidInputError(f"tile must be between 8 and 4096 pixels, got {tile}")
-        if max_nodes < 1 or milp_time_limit <= 0:
-            raise InvalidInputError("max_nodes must be >= 1 and milp_time_limit > 0")
-        if box_factor < 1:
-            raise InvalidInputError(f"box_factor must be >= 1, got {box_factor}")
-        if shadow is not None and shadow < 0:
-            raise InvalidInputError(f"shadow threshold must be >= 0, got {shadow}")
+        if isinstance(eps, str) and eps != "auto":
+            try:
+                eps = float(eps)
+            except ValueError:
+                raise InvalidInputError(f"eps must be a positive number or 'auto', got {eps!r}") from None
+        if isinstance(tile, bool) or not isinstance(tile, int) or not 8 <= tile <= 4096:
+            raise InvalidInputError(f"tile must be a whole number between 8 and 4096 pixels, got {tile!r}")
+        check_options(
+            eps=None if eps == "auto" else eps,
+            shadow=shadow,
+            saturation=saturation,
+            box_factor=box_factor,
+            max_nodes=max_nodes,
+            milp_time_limit=milp_time_limit,
+        )
         return cls(
             solver=solver,
             eps=None if eps == "auto" else float(eps),
             eps_request=eps if eps == "auto" else float(eps),
-            shadow=shadow,
-            saturation=saturation,
+            shadow=None if shadow is None else float(shadow),
+            saturation=None if saturation is None else float(saturation),
             box_factor=float(box_factor),
             tile=int(tile),
             max_nodes=int(max_nodes),

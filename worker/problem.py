@@ -56,6 +56,73 @@ class Thresholds:
     box_factor: float = DEFAULT_BOX_FACTOR
 
 
+#: Largest per-pixel node budget of the exact solver (about an hour of one core per pixel).
+MAX_NODES_LIMIT = 10**9
+#: Largest per-pixel MILP time limit, seconds.
+MAX_MILP_TIME_LIMIT = 3600.0
+#: Light sets whose condition number (largest / smallest singular value of the k x 3
+#: direction matrix) is above this are refused: a normal's error is amplified by about
+#: this factor, and coplanar or repeated lights (rank < 3) determine no normal at all.
+#: Real rigs sit far below (UW psm 6.4, DiLiGenT 3.2; lights in a 10-degree cone: ~8).
+MAX_LIGHT_CONDITION = 50.0
+#: Above this, loaders and the CLI warn that the light set is badly conditioned.
+WARN_LIGHT_CONDITION = 20.0
+
+
+def _finite_number(name: str, value: object) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
+        raise InvalidInputError(f"{name} must be a number, got {value!r}")
+    v = float(value)
+    if not np.isfinite(v):
+        raise InvalidInputError(f"{name} must be finite, got {value!r}")
+    return v
+
+
+def check_options(
+    *,
+    eps: float | None,
+    shadow: float | None = None,
+    saturation: float | None = None,
+    box_factor: float = DEFAULT_BOX_FACTOR,
+    max_nodes: int | None = None,
+    milp_time_limit: float | None = None,
+) -> None:
+    """The one validator of solver options, used by the library, the CLI and HTTP.
+
+    ``eps=None`` means "not known yet" (``eps="auto"`` before estimation): checks that
+    need it run again when it is known (:func:`make_thresholds`). Raises
+    :class:`InvalidInputError` with what is wrong and the allowed range.
+    """
+    if eps is not None and not _finite_number("eps", eps) > 0:
+        raise InvalidInputError(f"eps must be a positive finite number or 'auto', got {eps!r}")
+    if shadow is not None and not _finite_number("shadow", shadow) >= 0:
+        raise InvalidInputError(f"shadow threshold must be finite and >= 0, got {shadow!r}")
+    if saturation is not None:
+        if not _finite_number("saturation", saturation) > 0:
+            raise InvalidInputError(f"saturation must be a positive finite number, got {saturation!r}")
+        low = shadow if shadow is not None else eps
+        if low is not None and not saturation > low:
+            which = "shadow" if shadow is not None else "eps (the default shadow threshold)"
+            raise InvalidInputError(
+                f"saturation ({saturation}) must be above {which} ({low}); otherwise every "
+                "observation is a shadow or saturated and nothing can be solved"
+            )
+    if not _finite_number("box_factor", box_factor) >= 1:
+        raise InvalidInputError(f"box_factor must be a finite number >= 1, got {box_factor!r}")
+    if max_nodes is not None:
+        if isinstance(max_nodes, bool) or not isinstance(max_nodes, (int, np.integer)):
+            raise InvalidInputError(f"max_nodes must be a whole number, got {max_nodes!r}")
+        if not 1 <= max_nodes <= MAX_NODES_LIMIT:
+            raise InvalidInputError(f"max_nodes must be between 1 and {MAX_NODES_LIMIT}, got {max_nodes}")
+    if milp_time_limit is not None:
+        t = _finite_number("milp_time_limit", milp_time_limit)
+        if not 0 < t <= MAX_MILP_TIME_LIMIT:
+            raise InvalidInputError(
+                f"milp_time_limit must be above 0 and at most {MAX_MILP_TIME_LIMIT:g} s, "
+                f"got {milp_time_limit}"
+            )
+
+
 def make_thresholds(
     k: int,
     eps: float,
@@ -64,17 +131,13 @@ def make_thresholds(
     saturation: float | ArrayLike | None = None,
     box_factor: float = DEFAULT_BOX_FACTOR,
 ) -> Thresholds:
-    """Validate and build :class:`Thresholds` (``shadow`` defaults to ``eps``)."""
-    if not np.isfinite(eps) or eps <= 0:
-        raise InvalidInputError(f"eps must be a positive finite number, got {eps!r}")
+    """Validate (:func:`check_options`) and build :class:`Thresholds` (``shadow`` defaults to ``eps``)."""
+    scalar_sat = saturation if saturation is None or np.ndim(saturation) == 0 else None
+    check_options(eps=eps, shadow=shadow, saturation=scalar_sat, box_factor=box_factor)
     shadow_v = float(eps if shadow is None else shadow)
-    if not np.isfinite(shadow_v) or shadow_v < 0:
-        raise InvalidInputError(f"shadow threshold must be finite and >= 0, got {shadow!r}")
     sat = saturation_vector(k, saturation)
     if np.any(sat <= shadow_v):
         raise InvalidInputError("saturation thresholds must be above the shadow threshold")
-    if not np.isfinite(box_factor) or box_factor < 1:
-        raise InvalidInputError(f"box_factor must be >= 1, got {box_factor!r}")
     return Thresholds(float(eps), shadow_v, sat, float(box_factor))
 
 
@@ -112,9 +175,24 @@ def box_halfwidth(b: NDArray[np.float64], valid: NDArray[np.bool_], box_factor: 
     return float(box_factor * (b[valid].max() if valid.any() else 1.0))
 
 
+def light_singular_values(lights: ArrayLike) -> NDArray[np.float64]:
+    """Singular values of the ``(k, 3)`` light matrix, largest first."""
+    return np.linalg.svd(np.asarray(lights, dtype=np.float64), compute_uv=False)
+
+
+def light_condition(lights: ArrayLike) -> float:
+    """Condition number of the light matrix (inf when rank < 3)."""
+    s = light_singular_values(lights)
+    return float(s[0] / s[2]) if s.size == 3 and s[2] > 1e-12 * s[0] else float("inf")
+
+
 def check_lights(lights: ArrayLike, k: int | None = None) -> NDArray[np.float64]:
-    """Validate light directions: shape ``(k, 3)``, finite, unit length (1e-3)."""
-    arr = np.asarray(lights, dtype=np.float64)
+    """Validate light directions: shape ``(k, 3)``, finite, unit length (1e-3), and able
+    to determine a normal (rank 3, condition number at most :data:`MAX_LIGHT_CONDITION`)."""
+    try:
+        arr = np.asarray(lights, dtype=np.float64)
+    except (ValueError, TypeError):
+        raise InvalidInputError("lights must be k rows of 3 numbers each (x, y, z)") from None
     if arr.ndim != 2 or arr.shape[1] != 3:
         raise InvalidInputError(f"lights must have shape (k, 3), got {arr.shape}")
     if k is not None and arr.shape[0] != k:
@@ -128,4 +206,18 @@ def check_lights(lights: ArrayLike, k: int | None = None) -> NDArray[np.float64]
             f"light {bad} has length {norms[bad]:.4f}; light directions must be unit vectors "
             "(normalise them, and put the light's strength in the intensities instead)"
         )
-    return arr / norms[:, None]
+    unit = arr / norms[:, None]
+    cond = light_condition(unit) if unit.shape[0] >= 3 else float("inf")
+    if not cond <= MAX_LIGHT_CONDITION:
+        sv = ", ".join(f"{v:.3g}" for v in light_singular_values(unit))
+        why = (
+            "they are coplanar or repeated (rank < 3)"
+            if not np.isfinite(cond)
+            else f"their condition number is {cond:.3g} (the limit is {MAX_LIGHT_CONDITION:g})"
+        )
+        raise InvalidInputError(
+            f"the {unit.shape[0]} light directions cannot determine a surface normal: {why}; "
+            f"singular values {sv}. Lights must span 3-D: use lights from at least 3 directions "
+            "that are not in one plane through the object, spread around the camera axis"
+        )
+    return unit
