@@ -24,7 +24,7 @@ from worker import synthetic
 from worker.exact import exact_pixels
 from worker.lstsq import refit
 from worker.milp import MilpSolver
-from worker.problem import make_thresholds, usable
+from worker.problem import make_thresholds, slabs, usable
 from worker.solve import solve_pixels
 
 
@@ -46,13 +46,14 @@ def _bench_k(k: int, args: argparse.Namespace) -> list[tuple]:
     V = usable(I.T, th).T
     truth = sc.normals[sc.mask]
     pick = np.linspace(0, len(I) - 1, args.sample).astype(int)
-    exact_pixels(I[:2], V[:2], sc.lights, args.eps, th.box_factor, 10**7)  # JIT warm-up
+    lo, hi = slabs(I, args.eps)
+    exact_pixels(I[:2], lo[:2], hi[:2], V[:2], sc.lights, th.box_factor, 10**7)  # JIT warm-up
     ms = MilpSolver(sc.lights, time_limit=args.milp_cap)
-    one = [(I[i : i + 1], V[i : i + 1]) for i in pick]
+    one = [(I[i : i + 1], V[i : i + 1], lo[i : i + 1], hi[i : i + 1]) for i in pick]
     kernels = {
-        "milp": lambda Ii, Vi: ms.solve_pixel(Ii[0], Vi[0], args.eps, th.box_factor),
-        "exact": lambda Ii, Vi: exact_pixels(Ii, Vi, sc.lights, args.eps, th.box_factor, 10**7),
-        "l2": lambda Ii, Vi: refit(Ii, np.isfinite(Ii), sc.lights),
+        "milp": lambda Ii, Vi, *_: ms.solve_pixel(Ii[0], Vi[0], args.eps, th.box_factor),
+        "exact": lambda Ii, Vi, li, hi_: exact_pixels(Ii, li, hi_, Vi, sc.lights, th.box_factor, 10**7),
+        "l2": lambda Ii, Vi, *_: refit(Ii, np.isfinite(Ii), sc.lights),
     }
     times = {name: _time_each(fn, one) for name, fn in kernels.items()}
     capped = int((times["milp"] >= args.milp_cap * 1e3 * 0.95).sum())

@@ -309,14 +309,16 @@ def _try_point(L, a, b, idx, m, U, tol, x, y, z, best, bp):  # pragma: no cover 
 
 @njit(cache=True, nogil=True)
 def solve_exact(
-    I, valid, L, eps, box_factor, max_nodes, point, inl, count, nodes, certified
+    I, slab_lo, slab_hi, valid, L, box_factor, max_nodes, point, inl, count, nodes, certified
 ):  # pragma: no cover - numba
     """Solve every pixel of a batch; results are written into the output arrays.
 
     Parameters
     ----------
-    I : (P, k) float64 intensities; valid : (P, k) bool usable observations;
-    L : (k, 3) float64 unit lights; eps, box_factor : floats; max_nodes : int.
+    I : (P, k) float64 intensities (least-squares seeds only);
+    slab_lo, slab_hi : (P, k) float64 slab bounds ``lo <= L_i . n <= hi``, read
+    only where ``valid``; valid : (P, k) bool usable observations;
+    L : (k, 3) float64 unit lights; box_factor : float; max_nodes : int.
     point : (P, 3) float64 out, the Max-FS point (NaN where unsolved);
     inl : (P, k) bool out; count : (P,) int32 out; nodes : (P,) int64 out;
     certified : (P,) bool out, True where the optimum was proved.
@@ -348,14 +350,16 @@ def solve_exact(
     for px in range(P):
         m = 0
         maxb = 0.0
+        eps = 0.0  # the widest half-width: the scale of seed slack and of hmin
         for i in range(k):
             inl[px, i] = False
             if valid[px, i]:
-                a[i] = max(I[px, i] - eps, eps)
-                b[i] = I[px, i] + eps
+                a[i] = slab_lo[px, i]
+                b[i] = slab_hi[px, i]
                 idx[m] = i
                 m += 1
                 maxb = max(maxb, b[i])
+                eps = max(eps, 0.5 * (b[i] - a[i]))
         count[px] = 0
         nodes[px] = 0
         certified[px] = True
@@ -435,13 +439,18 @@ def solve_exact(
 
 def exact_pixels(
     I: NDArray[np.float64],
+    lo: NDArray[np.float64],
+    hi: NDArray[np.float64],
     valid: NDArray[np.bool_],
     L: NDArray[np.float64],
-    eps: float,
     box_factor: float,
     max_nodes: int,
 ) -> tuple[NDArray[np.float64], NDArray[np.bool_], NDArray[np.int32], NDArray[np.int64], NDArray[np.bool_]]:
-    """Run :func:`solve_exact` on ``(P, k)`` arrays; returns (point, inliers, count, nodes, certified)."""
+    """Run :func:`solve_exact` on ``(P, k)`` arrays; returns (point, inliers, count, nodes, certified).
+
+    ``lo``, ``hi`` are the slab bounds (e.g. :func:`worker.problem.slabs`), read
+    only where ``valid``; ``I`` seeds the least-squares incumbents.
+    """
     P, k = I.shape
     point = np.empty((P, 3))
     inl = np.empty((P, k), dtype=np.bool_)
@@ -450,9 +459,10 @@ def exact_pixels(
     cert = np.empty(P, dtype=np.bool_)
     solve_exact(
         np.ascontiguousarray(I, dtype=np.float64),
+        np.ascontiguousarray(lo, dtype=np.float64),
+        np.ascontiguousarray(hi, dtype=np.float64),
         np.ascontiguousarray(valid, dtype=np.bool_),
         np.ascontiguousarray(L, dtype=np.float64),
-        float(eps),
         float(box_factor),
         int(max_nodes),
         point,

@@ -30,6 +30,7 @@ from worker.problem import (
     Thresholds,
     check_lights,
     make_thresholds,
+    slabs,
     usable,
 )
 from worker.tiles import DEFAULT_TILE, Tile, tiles
@@ -129,7 +130,8 @@ def solve_pixels(
         rows = np.flatnonzero(valid.sum(axis=1) >= 3)
         if rows.size:
             if solver is Solver.EXACT:
-                pt, il, _, nd, cert = exact_pixels(I[rows], valid[rows], L, th.eps, th.box_factor, max_nodes)
+                lo, hi = slabs(I[rows], th.eps)
+                pt, il, _, nd, cert = exact_pixels(I[rows], lo, hi, valid[rows], L, th.box_factor, max_nodes)
                 nodes[rows] = nd
                 redo = np.flatnonzero(~cert)
                 if redo.size:  # budget exhausted: the MILP decides

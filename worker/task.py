@@ -97,5 +97,5 @@ def warm_up() -> bool:
 
     L = synthetic.lights_uniform(4)
     I = np.array([[100.0, 90.0, 80.0, 0.0]])
-    exact_pixels(I, I > 0, L, 1.0, 10.0, 1000)
+    exact_pixels(I, I - 1.0, I + 1.0, I > 0, L, 10.0, 1000)
     return True
