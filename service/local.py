@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import asyncio
 import dataclasses
+import json
+import shutil
 import time
 from pathlib import Path
 
@@ -19,35 +21,36 @@ from service.orchestrator import ProgressFn, run_job, warm_workers
 from service.previews import PREVIEW_INPUTS, PREVIEWS, render
 from storage.datasets import Dataset
 from storage.imageio import encode_png
-from storage.layout import JobSpec, JobStore
+from storage.layout import JobSpec, JobStore, array_digest, lights_digest
 from storage.params import JobParams
 from storage.records import JobRecord, JobState, load_record, save_record
-from worker.errors import ConflictError, StoreError
+from worker.errors import ConflictError, InvalidInputError, StoreError
 
 
-def ingest(ds: Dataset, out: Path, params: JobParams) -> tuple[JobStore, str]:
+def ingest(ds: Dataset, out: Path, params: JobParams, *, overwrite: bool = False) -> tuple[JobStore, str]:
     """Create or reopen the output store for ``ds``; copy images not yet stored.
 
-    Returns the store and a note for the user ("" when nothing notable happened).
+    A store that already holds *other* inputs (images, mask, lights or intensities,
+    compared by content digest) is refused unless ``overwrite``, which removes it and
+    starts from scratch. Unchanged inputs are recognised from the files' fingerprint
+    (paths, sizes, times) without decoding them again. Returns the store and a note
+    for the user ("" when nothing notable happened).
     """
     out = Path(out)
-    spec = JobSpec(ds.k, ds.height, ds.width, ds.channels, ds.dtype, ds.lights, ds.intensities)
+    spec = JobSpec(ds.k, ds.height, ds.width, ds.channels, ds.dtype, ds.lights, ds.intensities).validate()
     note = ""
+    if out.exists() and not out.is_dir():
+        raise ConflictError(f"{out} is a file; give a folder path for the results")
+    if out.exists() and any(out.iterdir()):
+        if not is_job_store(out):
+            raise ConflictError(
+                f"{out} is not empty and holds no maxfs results; choose a new or empty output folder"
+            )
+        if overwrite:
+            shutil.rmtree(out)
     if (out / "zarr.json").exists():
         store = JobStore.open(out)
-        s = store.spec
-        same = (s.k, s.height, s.width, s.channels, s.dtype) == (
-            ds.k,
-            ds.height,
-            ds.width,
-            ds.channels,
-            ds.dtype,
-        )
-        if not same or not np.allclose(s.lights, spec.validate().lights):
-            raise ConflictError(
-                f"{out} holds results of another dataset ({s.k} images of {s.height} x {s.width}); "
-                "choose another output path"
-            )
+        _check_same_inputs(store, ds, spec, out)
         old = store.params
         comparable = dataclasses.replace(old, eps=None) if params.eps is None else old
         if comparable != params:
@@ -64,14 +67,63 @@ def ingest(ds: Dataset, out: Path, params: JobParams) -> tuple[JobStore, str]:
     else:
         store = JobStore.create(out, spec, params)
         rec = JobRecord(id=out.name)
-    missing = np.flatnonzero(~store.uploaded())
-    for i in missing:
-        store.write_image(int(i), ds.read(int(i)))
-    if ds.mask is not None and missing.size:
-        store.write_mask(ds.mask)
+        for i in range(ds.k):
+            store.write_image(i, ds.read(i))
+        if ds.mask is not None:
+            store.write_mask(ds.mask)
+    store.source_fingerprint = ds.fingerprint()
+    if not store.read_mask().any():
+        raise InvalidInputError(f"the mask of {ds.name} selects no pixel; nothing to solve")
     rec.state = JobState.QUEUED
     save_record(out, rec)
     return store, note
+
+
+def is_job_store(path: Path) -> bool:
+    """Whether ``path`` holds a maxfs job store (of any format version)."""
+    try:
+        meta = json.loads((Path(path) / "zarr.json").read_text())
+    except (OSError, ValueError):
+        return False
+    return isinstance(meta, dict) and "maxfs_format" in meta.get("attributes", {})
+
+
+def _check_same_inputs(store: JobStore, ds: Dataset, spec: JobSpec, out: Path) -> None:
+    """Refuse a store that holds other inputs than ``ds``; complete a cut-short ingest.
+
+    Images already stored are compared by digest (decoding each file once, unless the
+    files' fingerprint is unchanged); missing ones, and a mask cut short, are written.
+    """
+
+    def differ(what: str) -> ConflictError:
+        return ConflictError(
+            f"{out} holds results for other inputs ({what} differ from {ds.name}); run again with "
+            "--overwrite to replace them, or choose another output folder"
+        )
+
+    s = store.spec
+    if (s.k, s.height, s.width, s.channels, s.dtype) != (ds.k, ds.height, ds.width, ds.channels, ds.dtype):
+        raise differ(f"{s.k} images of {s.height} x {s.width} {s.dtype}: the image count, size or type")
+    if store.lights_digest != lights_digest(spec):
+        raise differ("the light directions or intensities")
+    fp = ds.fingerprint()
+    if fp is not None and fp == store.source_fingerprint and store.input_identity():
+        return
+    stored, uploaded = store.digests(), store.uploaded()
+    for i in range(ds.k):
+        img = ds.read(i)
+        if not uploaded[i]:
+            store.write_image(i, img)
+        elif array_digest(img) != stored[i]:
+            raise differ(f"the images (image {i} first)")
+    state = store.mask_state()
+    if ds.mask is None:
+        if state != "default":
+            raise differ("the masks")
+    elif state == "incomplete":
+        store.write_mask(ds.mask)
+    elif state == "default" or array_digest(np.ascontiguousarray(ds.mask, dtype=bool)) != stored[s.k]:
+        raise differ("the masks")
 
 
 async def _run(out: Path, scheduler: str, workers: int, on_progress: ProgressFn | None) -> JobRecord:
@@ -101,6 +153,9 @@ def run_store(
     rec = asyncio.run(_run(Path(out), scheduler, workers, on_progress))
     if rec.state is JobState.DONE:
         write_previews(JobStore.open(Path(out), mode="r"))
+        from service.research import finish_results
+
+        finish_results(out)
     return rec
 
 

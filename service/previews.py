@@ -7,9 +7,9 @@ from numpy.typing import NDArray
 
 
 def normal_rgb(normal: NDArray[np.floating]) -> NDArray[np.uint8]:
-    """255 * [(nx + 1) / 2, (ny + 1) / 2, nz]; black where undefined."""
+    """255 * (n + 1) / 2 for all three components (the field's convention); black where undefined."""
     n = np.nan_to_num(np.asarray(normal, dtype=np.float64), nan=0.0)
-    rgb = np.stack([(n[..., 0] + 1) / 2, (n[..., 1] + 1) / 2, np.clip(n[..., 2], 0, 1)], axis=-1)
+    rgb = (n + 1.0) / 2.0
     rgb[~np.isfinite(np.asarray(normal)[..., 0])] = 0.0
     return np.clip(np.round(255 * rgb), 0, 255).astype(np.uint8)
 

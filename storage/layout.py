@@ -14,6 +14,8 @@ Layout (root group; ``T`` = tile edge, chunks are tile-aligned)::
     inlier_count  (H, W)          uint16
     optimal       (H, W)          bool
     done          (ny, nx)        int32                 chunks (1, 1)
+    tile_stats    (ny, nx, 3)     int64                 chunks (1, 1, 3)  active, solved, certified pixels
+    input_digests (k + 1, 32)     uint8                 chunks (1, 32)    BLAKE2b of image i; row k: mask
 
 ``W'`` is W rounded up to a multiple of T. A tile task reads k chunks of ``images``
 (one per image, through each shard's index); an upload writes one band of T rows
@@ -21,7 +23,13 @@ at a time, which is one whole shard, so the server never holds more than a band.
 An image is written as ``uploaded[i] = False``, its bands, then ``uploaded[i] =
 True``, so an upload cut short (a killed server) leaves the image marked missing.
 
-A tile task writes whole chunks of the outputs, then ``done[ty, tx] =
+**Input identity.** Each image's digest is computed from the bands as they are written
+(no second read) and stored in ``input_digests[i]``; the mask's in row ``k``, which holds
+:data:`MASK_WRITING` while a mask is being written, so a mask cut short by a crash is
+detected (:meth:`JobStore.mask_state`) and never used. :meth:`JobStore.input_identity`
+combines them with the lights and intensities: a store reused for other inputs is refused.
+
+A tile task writes whole chunks of the outputs and its pixel counts, then ``done[ty, tx] =
 params.token()`` last. A tile counts as finished only if its marker equals the
 token of the *current* parameters, so a job re-run with other parameters never
 reuses stale tiles. The store is created once, by the service or CLI, with mode
@@ -34,9 +42,10 @@ file that makes tile tasks stop at the next tile boundary).
 
 from __future__ import annotations
 
+import hashlib
 import os
 import time
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -52,12 +61,58 @@ from worker.problem import check_lights
 from worker.solve import TileResult
 from worker.tiles import Tile, auto_tile, grid_shape, tile_memory, tiles
 
-FORMAT_VERSION = 1
+
+class ArrayHasher:
+    """BLAKE2b-256 of an array's shape, dtype and little-endian C-order bytes, fed in
+    consecutive row bands, so a digest is made while the bands are written."""
+
+    def __init__(self, shape: tuple[int, ...], dtype: np.dtype | str) -> None:
+        self.dtype = np.dtype(dtype).newbyteorder("<")
+        self.h = hashlib.blake2b(digest_size=DIGEST_BYTES)
+        self.h.update(f"{tuple(shape)}|{self.dtype.str}|".encode())
+
+    def update(self, band: NDArray[Any]) -> None:
+        a = np.ascontiguousarray(band).astype(self.dtype, copy=False)
+        self.h.update(memoryview(a.reshape(-1)).cast("B"))
+
+    def digest(self) -> bytes:
+        return self.h.digest()
+
+
+def array_digest(arr: NDArray[Any]) -> bytes:
+    """The :class:`ArrayHasher` digest of a whole array."""
+    h = ArrayHasher(arr.shape, arr.dtype)
+    h.update(arr)
+    return h.digest()
+
+
+def lights_digest(spec: JobSpec) -> str:
+    """Digest of a validated spec's light directions and intensities."""
+    return (array_digest(spec.lights) + array_digest(spec.intensities)).hex()
+
+
+@dataclass(frozen=True)
+class ProgressCounts:
+    """What the finished tiles hold (from the small per-tile arrays, never the outputs)."""
+
+    tiles_done: int
+    tiles_total: int
+    pixels_done: int  # masked pixels in finished tiles
+    pixels_total: int  # masked pixels of the job
+    solved: int  # masked pixels in finished tiles that got a normal
+    certified: int  # ... whose optimum was proved
+
+FORMAT_VERSION = 2
+DIGEST_BYTES = 32
+#: ``input_digests[k]`` while a mask is being written (a crash leaves it there).
+MASK_WRITING = bytes([0xFF]) * DIGEST_BYTES
 DTYPES = ("uint8", "uint16", "float32")
 RUNS_LOG = "maxfs-runs.log"
 CANCEL_FLAG = "maxfs-cancel"
 #: Output arrays a client may fetch.
-OUTPUTS = ("normal", "albedo", "albedo_rgb", "inliers", "inlier_count", "optimal", "mask")
+OUTPUTS = ("normal", "albedo", "albedo_rgb", "inliers", "inlier_count", "optimal", "mask", "depth")
+#: Outputs indexed (image, y, x); every other output is (y, x[, ...]).
+IMAGE_FIRST = frozenset({"inliers"})
 
 
 @dataclass(frozen=True)
@@ -82,7 +137,16 @@ class JobSpec:
         if self.dtype not in DTYPES:
             raise InvalidInputError(f"dtype must be one of {', '.join(DTYPES)}, got {self.dtype!r}")
         lights = check_lights(self.lights, self.k)
-        obs = ObservationModel.for_input(np.dtype(self.dtype), self.k, self.channels, self.intensities)
+        inten = self.intensities
+        if inten is not None:
+            try:
+                inten = np.asarray(inten, dtype=np.float64)
+            except (ValueError, TypeError):
+                raise InvalidInputError(
+                    f"light intensities must be {self.k} numbers, or {self.k} rows of one number per "
+                    "channel, all rows the same length"
+                ) from None
+        obs = ObservationModel.for_input(np.dtype(self.dtype), self.k, self.channels, inten)
         return JobSpec(self.k, self.height, self.width, self.channels, self.dtype, lights, obs.intensities)
 
     @property
@@ -137,7 +201,11 @@ class JobStore:
         self.group = group
         attrs = dict(group.attrs)
         if attrs.get("maxfs_format") != FORMAT_VERSION:
-            raise StoreError(f"{path} is not a maxfs job store (format {attrs.get('maxfs_format')!r})")
+            fmt = attrs.get("maxfs_format")
+            raise StoreError(
+                f"{path} is not a maxfs job store of this version (format {fmt!r}, this maxfs writes "
+                f"{FORMAT_VERSION}); choose another output, or run with --overwrite to replace it"
+            )
         self.spec = JobSpec(
             k=attrs["k"],
             height=attrs["height"],
@@ -187,6 +255,16 @@ class JobStore:
         g.create_array("inlier_count", shape=(H, W), chunks=tc, dtype="uint16", fill_value=0)
         g.create_array("optimal", shape=(H, W), chunks=tc, dtype="bool", fill_value=False)
         g.create_array("done", shape=grid_shape(H, W, T), chunks=(1, 1), dtype="int32", fill_value=0)
+        g.create_array(
+            "tile_stats", shape=(*grid_shape(H, W, T), 3), chunks=(1, 1, 3), dtype="int64", fill_value=0
+        )
+        g.create_array(
+            "input_digests",
+            shape=(k + 1, DIGEST_BYTES),
+            chunks=(1, DIGEST_BYTES),
+            dtype="uint8",
+            fill_value=0,
+        )
         # attrs last: a store without them is detected as incomplete on open
         g.attrs.update(
             {
@@ -198,6 +276,7 @@ class JobStore:
                 "dtype": spec.dtype,
                 "params": params.to_json(),
                 "params_hash": params.digest() if params.eps is not None else None,
+                "lights_digest": lights_digest(spec),
             }
         )
         return cls(path, g)
@@ -272,23 +351,73 @@ class JobStore:
         self.check_index(i)
         images, y = self.group["images"], 0
         self.group["uploaded"][i] = False
+        h = ArrayHasher(self.spec.image_shape, self.spec.dtype)
         for band in bands:
             images[i, y : y + band.shape[0]] = band
+            h.update(band)
             y += band.shape[0]
         if y != self.spec.height:
             raise InvalidInputError(f"image {i}: got {y} rows, the job expects {self.spec.height}")
+        self.group["input_digests"][i] = np.frombuffer(h.digest(), np.uint8)
         self.group["uploaded"][i] = True
 
     def uploaded(self) -> NDArray[np.bool_]:
         return np.asarray(self.group["uploaded"][...])
 
-    def write_mask(self, mask: NDArray[np.bool_]) -> None:
+    def digests(self) -> list[bytes]:
+        """Recorded digests: images 0..k-1, then the mask (zeros = not written)."""
+        return [bytes(row) for row in np.asarray(self.group["input_digests"][...])]
+
+    def write_mask(self, mask: NDArray[np.bool_], after_first_band: Callable[[], None] | None = None) -> None:
+        """Store the mask, band by band; a crash part-way leaves :meth:`mask_state`
+        "incomplete", never a silent mix of old and new. ``after_first_band`` is a test hook."""
         s = self.spec
         if mask.shape != (s.height, s.width):
             raise InvalidInputError(
                 f"mask has shape {mask.shape}, the job's images are {s.height} x {s.width}"
             )
-        self.group["mask"][...] = mask.astype(bool)
+        m = np.ascontiguousarray(mask, dtype=bool)
+        dig = self.group["input_digests"]
+        dig[s.k] = np.frombuffer(MASK_WRITING, np.uint8)
+        arr, rows = self.group["mask"], int(self.group["mask"].chunks[0])
+        for y in range(0, s.height, rows):
+            arr[y : y + rows] = m[y : y + rows]
+            if y == 0 and after_first_band is not None:
+                after_first_band()
+        dig[s.k] = np.frombuffer(array_digest(m), np.uint8)
+
+    @property
+    def lights_digest(self) -> str:
+        return str(self.group.attrs["lights_digest"])
+
+    @property
+    def source_fingerprint(self) -> str | None:
+        """Fingerprint of the files the inputs were read from (:meth:`Dataset.fingerprint`)."""
+        return self.group.attrs.get("source_fingerprint")
+
+    @source_fingerprint.setter
+    def source_fingerprint(self, fp: str | None) -> None:
+        if fp != self.source_fingerprint:
+            self.group.attrs["source_fingerprint"] = fp
+
+    def mask_state(self) -> str:
+        """"default" (none given: every pixel), "complete", or "incomplete" (a write was cut short)."""
+        d = bytes(np.asarray(self.group["input_digests"][self.spec.k]))
+        if d == MASK_WRITING:
+            return "incomplete"
+        return "default" if not any(d) else "complete"
+
+    def input_identity(self) -> str | None:
+        """A digest of every input (images, mask, lights, intensities, shape); None while an
+        image is missing or the mask is incomplete."""
+        if not self.uploaded().all() or self.mask_state() == "incomplete":
+            return None
+        s = self.spec
+        h = hashlib.sha256(f"{s.k}|{s.height}|{s.width}|{s.channels}|{s.dtype}|".encode())
+        h.update(bytes.fromhex(self.group.attrs["lights_digest"]))
+        for d in self.digests():
+            h.update(d)
+        return h.hexdigest()
 
     def read_mask(self) -> NDArray[np.bool_]:
         return np.asarray(self.group["mask"][...])
@@ -307,11 +436,32 @@ class JobStore:
 
     def read_tile(self, t: Tile) -> tuple[NDArray[Any], NDArray[np.bool_]]:
         """Raw images ``(k, h, w[, C])`` and mask ``(h, w)`` of one tile."""
-        ys, xs = slice(t.y0, t.y1), slice(t.x0, t.x1)
-        return np.asarray(self.group["images"][:, ys, xs]), np.asarray(self.group["mask"][ys, xs])
+        return self.read_tile_images(t), self.read_tile_mask(t)
 
-    def write_tile(self, t: Tile, r: TileResult, token: int) -> None:
-        """Write a tile's outputs (whole chunks), then its done marker, last."""
+    def read_tile_images(self, t: Tile) -> NDArray[Any]:
+        return np.asarray(self.group["images"][:, t.y0 : t.y1, t.x0 : t.x1])
+
+    def read_tile_mask(self, t: Tile) -> NDArray[np.bool_]:
+        return np.asarray(self.group["mask"][t.y0 : t.y1, t.x0 : t.x1])
+
+    def write_empty_tile(self, t: Tile, token: int) -> None:
+        """A tile with no masked pixel: every output at its fill value, zero stats, done marker."""
+        ys, xs = slice(t.y0, t.y1), slice(t.x0, t.x1)
+        g = self.group
+        for name in self.output_names():
+            if name == "mask":
+                continue
+            a = g[name]
+            if name in IMAGE_FIRST:
+                a[:, ys, xs] = a.fill_value
+            else:
+                a[ys, xs] = a.fill_value
+        g["tile_stats"][t.ty, t.tx] = np.zeros(3, dtype=np.int64)
+        g["done"][t.ty, t.tx] = token
+
+    def write_tile(self, t: Tile, r: TileResult, token: int, stats: tuple[int, int, int]) -> None:
+        """Write a tile's outputs (whole chunks) and ``stats`` (active, solved, certified
+        pixels), then its done marker, last."""
         ys, xs = slice(t.y0, t.y1), slice(t.x0, t.x1)
         g = self.group
         g["normal"][ys, xs] = r.normal
@@ -321,7 +471,26 @@ class JobStore:
         g["inliers"][:, ys, xs] = r.inliers
         g["inlier_count"][ys, xs] = r.inlier_count
         g["optimal"][ys, xs] = r.optimal
+        g["tile_stats"][t.ty, t.tx] = np.asarray(stats, dtype=np.int64)
         g["done"][t.ty, t.tx] = token
+
+    def tile_done(self, t: Tile) -> bool:
+        """Whether tile ``t`` is finished with the current parameters."""
+        p = self.params
+        return p.eps is not None and int(self.group["done"][t.ty, t.tx]) == p.token()
+
+    def progress(self) -> ProgressCounts:
+        """Counts over the finished tiles, from the done grid and per-tile stats only."""
+        done = self.done_grid()
+        stats = np.asarray(self.group["tile_stats"][...])[done]
+        return ProgressCounts(
+            tiles_done=int(done.sum()),
+            tiles_total=int(done.size),
+            pixels_done=int(stats[:, 0].sum()),
+            pixels_total=int(self.read_mask().sum()),
+            solved=int(stats[:, 1].sum()),
+            certified=int(stats[:, 2].sum()),
+        )
 
     def read_output(self, name: str) -> NDArray[Any]:
         if name not in OUTPUTS or name not in self.group:

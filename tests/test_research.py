@@ -1,0 +1,177 @@
+"""What researchers do with a result: eval against ground truth, depth, export, xarray."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from storage.imageio import encode_png
+from storage.layout import JobSpec, JobStore
+from storage.params import JobParams
+from worker.depth import integrate
+from worker.evaluate import evaluate, load_ground_truth
+
+MAXFS = str(Path(sys.executable).parent / "maxfs")
+
+
+def _maxfs(*args: str, timeout: float = 120) -> subprocess.CompletedProcess:
+    return subprocess.run([MAXFS, *args], capture_output=True, text=True, timeout=timeout)
+
+
+def _sphere(size: int, R: float, frac: float = 1.0):
+    """Unit normals, true height and mask of a sphere of radius R pixels (x right, y up, row 0 on top)."""
+    c = np.arange(size) + 0.5 - size / 2
+    x, yy = np.meshgrid(c, c)
+    y = -yy
+    r2 = x**2 + y**2
+    mask = r2 < (frac * R) ** 2
+    z = np.sqrt(np.clip(R**2 - r2, 0, None))
+    n = np.stack([x, y, z], -1) / R
+    n[~mask] = np.nan
+    return n, np.where(mask, z, np.nan), mask
+
+
+def _bumps(size: int):
+    """Gaussian bumps and a dip on a non-rectangular (ring-and-notch) domain with two pieces."""
+    r, c = np.mgrid[0:size, 0:size].astype(np.float64)
+    x, y = c, -r
+    z = np.zeros_like(x)
+    dzdx = np.zeros_like(x)
+    dzdy = np.zeros_like(x)
+    for cx, cy, a, s in ((0.3, -0.3, 12.0, 0.12), (0.7, -0.6, -8.0, 0.1), (0.45, -0.75, 6.0, 0.08)):
+        cx, cy, s = cx * size, cy * size, s * size
+        g = a * np.exp(-((x - cx) ** 2 + (y - cy) ** 2) / (2 * s**2))
+        z += g
+        dzdx += -g * (x - cx) / s**2
+        dzdy += -g * (y - cy) / s**2
+    n = np.stack([-dzdx, -dzdy, np.ones_like(z)], -1)
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    d = np.hypot(c - size / 2, r - size / 2)
+    mask = (d < 0.45 * size) & ~((r > 0.4 * size) & (r < 0.45 * size))  # a slot cuts it in two pieces
+    mask &= ~((c > 0.6 * size) & (r < 0.3 * size))  # and a notch
+    n[~mask] = np.nan
+    return n, np.where(mask, z, np.nan), mask
+
+
+def _store_with_normals(path: Path, normal: np.ndarray, mask: np.ndarray) -> JobStore:
+    """A job store whose outputs are given (no run): enough for eval, depth and export."""
+    H, W = mask.shape
+    lights = np.array([[0.0, 0.0, 1.0], [0.5, 0.0, 0.866], [0.0, 0.5, 0.866], [-0.5, -0.5, 0.707]])
+    spec = JobSpec(4, H, W, None, "uint8", lights)
+    store = JobStore.create(path, spec, JobParams.build(eps=1.0, tile=32))
+    store.write_mask(mask)
+    g = store.group
+    g["normal"][...] = np.where(mask[..., None], normal, np.nan).astype(np.float32)
+    g["albedo"][...] = np.where(mask, 100.0, 0.0).astype(np.float32)
+    g["inlier_count"][...] = np.where(mask, 3, 0).astype(np.uint16)
+    return store
+
+
+def _independent_angles(est: np.ndarray, gt: np.ndarray) -> np.ndarray:
+    """Textbook arccos of the normalised dot product (float64)."""
+    a = est / np.linalg.norm(est, axis=-1, keepdims=True)
+    b = gt / np.linalg.norm(gt, axis=-1, keepdims=True)
+    return np.degrees(np.arccos(np.clip((a * b).sum(-1), -1.0, 1.0)))
+
+
+# -- eval ------------------------------------------------------------------------------------------------
+def test_eval_cli_matches_an_independent_computation(tmp_path: Path) -> None:
+    import scipy.io
+
+    rng = np.random.default_rng(1)
+    gt_n, _, gt_mask = _sphere(48, 22)
+    est = gt_n + rng.normal(0, 0.08, gt_n.shape)  # errors of a few to ~20 degrees
+    est /= np.linalg.norm(est, axis=-1, keepdims=True)
+    mask = gt_mask.copy()
+    est[20:23, 20:23] = np.nan  # some unsolved pixels inside the ground truth's mask
+    store = _store_with_normals(tmp_path / "out.zarr", est, mask)
+    est32 = store.read_output("normal").astype(np.float64)
+    mat = np.where(gt_mask[..., None], gt_n, 0.0)  # DiLiGenT: zeros outside the object
+    scipy.io.savemat(tmp_path / "Normal_gt.mat", {"Normal_gt": mat})
+
+    r = _maxfs("eval", str(store.path), "--gt", str(tmp_path / "Normal_gt.mat"), "--json")
+    assert r.returncode == 0, r.stderr
+    got = json.loads(r.stdout)
+
+    sel = gt_mask & np.isfinite(est32[..., 0])
+    ang = _independent_angles(est32[sel], gt_n[sel])
+    assert got["pixels"] == gt_mask.sum() and got["missing"] == 9 and got["evaluated"] == ang.size
+    assert abs(got["mean_deg"] - ang.mean()) < 1e-4
+    assert abs(got["median_deg"] - np.median(ang)) < 1e-4
+    for t in (5, 10, 15, 20):
+        assert got["under"][str(t)] == pytest.approx((ang < t).mean(), abs=1e-12)
+    assert 2 < got["mean_deg"] < 15
+    png = store.path / "previews" / "angular_error.png"
+    assert png.stat().st_size > 1000 and json.loads((store.path / "maxfs-eval.json").read_text()) == got
+
+    # the human form, and the same numbers from an NPY and a 16-bit (n+1)/2 PNG ground truth
+    r = _maxfs("eval", str(store.path), "--gt", str(tmp_path / "Normal_gt.mat"))
+    assert r.returncode == 0 and f"mean {ang.mean():.3f} deg" in r.stdout
+    np.save(tmp_path / "gt.npy", gt_n)
+    ev, _ = evaluate(est32, load_ground_truth(tmp_path / "gt.npy"))
+    assert abs(ev.mean_deg - ang.mean()) < 1e-4
+    q = np.where(gt_mask[..., None], np.round((gt_n + 1) / 2 * 65535), 0).astype(np.uint16)
+    (tmp_path / "gt.png").write_bytes(encode_png(q))
+    ev, _ = evaluate(est32, load_ground_truth(tmp_path / "gt.png"))
+    deq = q / 65535.0 * 2 - 1
+    ang_png = _independent_angles(est32[sel], deq[sel])
+    assert abs(ev.mean_deg - ang_png.mean()) < 1e-4 and ev.pixels == gt_mask.sum()
+
+
+def test_eval_refuses_a_ground_truth_of_another_size(tmp_path: Path) -> None:
+    n, _, m = _sphere(32, 14)
+    store = _store_with_normals(tmp_path / "out.zarr", n, m)
+    np.save(tmp_path / "gt.npy", _sphere(40, 14)[0])
+    r = _maxfs("eval", str(store.path), "--gt", str(tmp_path / "gt.npy"))
+    assert r.returncode == 2 and "same image size" in r.stderr and "Traceback" not in r.stderr
+
+
+# -- depth -----------------------------------------------------------------------------------------------
+def test_depth_of_a_sphere_is_within_one_percent_of_its_radius() -> None:
+    R = 60.0
+    n, z, m = _sphere(128, R)  # the whole disc, silhouette included
+    d = integrate(n, m)
+    e = d.depth[m] - z[m]
+    e -= e.mean()  # depth is known up to a constant
+    rel = np.sqrt(np.mean(e**2)) / R
+    assert rel < 0.01, rel
+    assert d.pieces == 1 and np.isnan(d.depth[~m]).all() and d.residual_rms < 0.05
+    print(f"sphere R={R:g}: RMS depth error {rel:.3%} of the radius, max {np.abs(e).max() / R:.2%}")
+
+
+def test_depth_of_bumps_on_a_two_piece_non_rectangular_mask() -> None:
+    n, z, m = _bumps(96)
+    d = integrate(n, m)
+    assert d.pieces == 2
+    import scipy.ndimage
+
+    labels, k = scipy.ndimage.label(m)
+    amplitude = np.nanmax(z) - np.nanmin(z)
+    for i in range(1, k + 1):
+        sel = labels == i
+        e = d.depth[sel] - z[sel]
+        e -= e.mean()  # each piece has its own constant
+        rel = np.sqrt(np.mean(e**2)) / amplitude
+        assert rel < 0.005, rel
+        assert abs(float(np.mean(d.depth[sel]))) < 1e-3  # each piece has mean 0
+    assert np.isnan(d.depth[~m]).all()
+
+
+def test_depth_is_written_into_the_store_with_its_method(tmp_path: Path) -> None:
+    import zarr
+
+    from service.research import write_depth
+
+    n, _, m = _sphere(40, 18)
+    store = _store_with_normals(tmp_path / "out.zarr", n, m)
+    res = write_depth(store.path)
+    arr = zarr.open_group(store.path, mode="r")["depth"]
+    assert arr.shape == (40, 40) and arr.dtype == np.float32
+    assert arr.attrs["method"] == res.method and arr.attrs["residual_rms"] == res.residual_rms
+    np.testing.assert_array_equal(JobStore.open(store.path, mode="r").read_output("depth"), res.depth)
+    assert (store.path / "previews" / "depth.png").stat().st_size > 500
