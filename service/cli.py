@@ -127,6 +127,25 @@ def _report_ground_truth(args: argparse.Namespace, out: Path) -> None:
         print(f"vs {gt}: {ev.summary()}; error map {map_path}, numbers {json_path}")
 
 
+def cmd_export(args: argparse.Namespace) -> int:
+    from service.export import ITEMS, export
+
+    items = tuple(args.only.split(",")) if args.only else ITEMS
+    if args.no_mesh:
+        items = tuple(i for i in items if i != "mesh")
+    m = export(args.store, args.output, items=items, mesh_formats=tuple(args.mesh_format.split(",")))
+    if m["tiles_done"] < m["tiles_total"]:
+        print(
+            f"maxfs: WARNING: {m['tiles_total'] - m['tiles_done']} of {m['tiles_total']} tiles are not "
+            "finished; their pixels are empty in the export",
+            file=sys.stderr,
+        )
+    for name, info in m["files"].items():
+        extra = ", ".join(f"{k} {v}" for k, v in info.items() if k in ("vertices", "faces", "scale"))
+        print(f"{m['folder']}/{name}" + (f"  ({extra})" if extra else ""))
+    return 0
+
+
 def cmd_eval(args: argparse.Namespace) -> int:
     from service.research import evaluate_store
 
@@ -299,6 +318,13 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--json-out", default=None, help="statistics file (default: STORE/maxfs-eval.json)")
     p.add_argument("--json", action="store_true", help="print the statistics as JSON")
     p.set_defaults(fn=cmd_eval)
+    p = sub.add_parser("export", help="write results as PNG/NPY/TIFF images and a PLY/OBJ mesh")
+    p.add_argument("store", help="a job store (OUT.zarr)")
+    p.add_argument("-o", "--output", default=None, help="folder (default: OUT-export beside OUT.zarr)")
+    p.add_argument("--only", default=None, help="comma list of normal,albedo,inlier_count,depth,mesh")
+    p.add_argument("--no-mesh", action="store_true", help="skip the mesh")
+    p.add_argument("--mesh-format", default="ply,obj", help="ply, obj or ply,obj (default)")
+    p.set_defaults(fn=cmd_export)
     p = sub.add_parser("demo", help="make a synthetic dataset and run it")
     p.add_argument("-o", "--output", default="maxfs-demo")
     p.add_argument("--k", type=int, default=24)

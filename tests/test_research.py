@@ -175,3 +175,59 @@ def test_depth_is_written_into_the_store_with_its_method(tmp_path: Path) -> None
     assert arr.attrs["method"] == res.method and arr.attrs["residual_rms"] == res.residual_rms
     np.testing.assert_array_equal(JobStore.open(store.path, mode="r").read_output("depth"), res.depth)
     assert (store.path / "previews" / "depth.png").stat().st_size > 500
+
+
+# -- export ----------------------------------------------------------------------------------------------
+def test_export_cli_writes_images_arrays_and_a_mesh_that_trimesh_reads_back(tmp_path: Path) -> None:
+    import tifffile
+    import trimesh
+
+    from storage.imageio import read_image
+
+    n, _, m = _sphere(40, 18)
+    m[5:8, 18:21] = False  # a hole: the mesh must go around it
+    store = _store_with_normals(tmp_path / "out.zarr", n, m)
+    r = _maxfs("export", str(store.path))
+    assert r.returncode == 0, r.stderr
+    out = tmp_path / "out-export"
+    normal = np.load(out / "normal.npy")
+    np.testing.assert_array_equal(normal, store.read_output("normal"))
+    png = read_image(out / "normal.png")
+    assert png.dtype == np.uint16 and png.shape == (40, 40, 3)
+    ok = np.isfinite(normal[..., 0])
+    # (n + 1) / 2 in all three channels, nz included
+    np.testing.assert_allclose(png[ok] / 65535.0 * 2 - 1, normal[ok], atol=2e-5)
+    assert not png[~ok].any()
+    np.testing.assert_array_equal(tifffile.imread(out / "normal.tiff"), normal)
+    depth = np.load(out / "depth.npy")
+    assert depth.dtype == np.float32 and (np.isfinite(depth) == ok).all()
+    assert np.load(out / "inlier_count.npy").max() == 3
+
+    manifest = json.loads((out / "export.json").read_text())
+    for fmt in ("ply", "obj"):
+        mesh = trimesh.load(out / f"mesh.{fmt}", process=False)
+        assert len(mesh.vertices) == ok.sum() == manifest["files"][f"mesh.{fmt}"]["vertices"]
+        assert len(mesh.faces) == manifest["files"][f"mesh.{fmt}"]["faces"] > ok.sum()
+        np.testing.assert_allclose(mesh.vertices[:, 2], depth[ok], atol=1e-4)
+        np.testing.assert_allclose(mesh.vertex_normals, normal[ok], atol=1e-4)
+        # triangles face the camera like the surface they approximate
+        assert (np.sum(mesh.face_normals * mesh.vertex_normals[mesh.faces].mean(1), axis=1) > 0).all()
+    ply = trimesh.load(out / "mesh.ply", process=False)
+    assert (ply.visual.vertex_colors[:, :3] > 0).all()  # albedo colour on every vertex
+
+    r = _maxfs("export", str(store.path), "-o", str(tmp_path / "only"), "--only", "depth", "--no-mesh")
+    assert r.returncode == 0 and sorted(p.name for p in (tmp_path / "only").iterdir()) == [
+        "depth.npy",
+        "depth.png",
+        "depth.tiff",
+        "export.json",
+    ]
+    r = _maxfs("export", str(store.path), "--only", "volume")
+    assert r.returncode == 2 and "cannot export" in r.stderr
+
+
+def test_normal_preview_is_n_plus_one_over_two_in_all_channels() -> None:
+    from service.previews import normal_rgb
+
+    n = np.array([[[0.0, 0.0, 1.0], [0.6, -0.8, 0.0], [np.nan, np.nan, np.nan]]])
+    np.testing.assert_array_equal(normal_rgb(n), [[[128, 128, 255], [204, 25, 128], [0, 0, 0]]])
