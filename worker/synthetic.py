@@ -161,3 +161,124 @@ def angular_error_deg(est: NDArray[np.floating], truth: NDArray[np.floating]) ->
     """Angle in degrees between unit normals (..., 3); NaN where either is NaN."""
     dot = np.clip(np.sum(np.asarray(est, np.float64) * truth, axis=-1), -1.0, 1.0)
     return np.degrees(np.arccos(dot))
+
+
+def _relief(x: NDArray[np.float64], y: NDArray[np.float64]) -> tuple[NDArray[np.float64], ...]:
+    """Height ``z``, slopes ``dz/dx``, ``dz/dy`` and "on the ball" of :func:`realistic_scene`'s relief.
+
+    A rippled ground with three Gaussian mounds, and a ball sunk into it.
+    """
+    gz = 0.04 * np.sin(5.0 * x + 1.0) * np.cos(4.0 * y)
+    gx = 0.2 * np.cos(5.0 * x + 1.0) * np.cos(4.0 * y)
+    gy = -0.16 * np.sin(5.0 * x + 1.0) * np.sin(4.0 * y)
+    for cx, cy, amp, s in ((-0.55, 0.5, 0.5, 0.18), (0.55, -0.5, 0.4, 0.2), (0.6, 0.6, 0.25, 0.1)):
+        e = amp * np.exp(-((x - cx) ** 2 + (y - cy) ** 2) / (2 * s * s))
+        gz = gz + e
+        gx = gx - e * (x - cx) / (s * s)
+        gy = gy - e * (y - cy) / (s * s)
+    bx, by, br, bc = -0.15, -0.2, 0.45, 0.1  # ball centre (bx, by, bc) and radius
+    r2 = (x - bx) ** 2 + (y - by) ** 2
+    bz = bc + np.sqrt(np.clip(br * br - r2, 0.0, None))
+    ball = (r2 < br * br) & (bz > gz)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        dz = np.where(ball, bz - bc, 1.0)
+        z = np.where(ball, bz, gz)
+        sx = np.where(ball, -(x - bx) / dz, gx)
+        sy = np.where(ball, -(y - by) / dz, gy)
+    return z, sx, sy, ball
+
+
+def realistic_scene(
+    k: int = 96,
+    size: int = 64,
+    seed: int = 0,
+    bits: int = 16,
+    *,
+    exposure: float = 0.6,
+    full_well: float = 60000.0,
+    read_noise: float = 3.0,
+    ambient: float = 0.01,
+    max_zenith_deg: float = 60.0,
+) -> Scene:
+    """A harder, camera-like scene: cast and attached shadows, glossy lobes, sensor noise.
+
+    A rippled, textured ground with Gaussian mounds and a sunk ball, seen from +z:
+
+    * reflectance: an Oren-Nayar diffuse term (a rough, not quite Lambertian
+      surface; facet slope 0.1 to 0.45) with albedo varying over the surface,
+      plus a Cook-Torrance lobe (GGX distribution, Schlick Fresnel, Smith
+      shadowing) whose roughness (0.1 to 0.45) and strength vary too; the ball is
+      smoother and glossier than the ground;
+    * attached shadows (``N.L <= 0``) and cast shadows (a ray toward the light
+      meets the relief), both lit only by a small ``ambient`` term;
+    * ``exposure``: the sensor level of a white Lambertian surface facing the
+      light, as a fraction of full scale; glossy highlights saturate;
+    * noise: photon shot noise for a sensor of ``full_well`` electrons at full
+      scale plus ``read_noise`` electrons of read noise, then rounding to
+      ``bits`` bits and clipping to the sensor's maximum (``saturation``);
+    * lights: :func:`lights_uniform` jittered by about 1 degree.
+
+    ``images`` are on the raw sensor scale ``0 .. 2**bits - 1``; ``normals`` are
+    the analytic ones; the mask drops the ball's rim, where the normal jumps.
+    """
+    rng = np.random.default_rng(seed)
+    top = float(2**bits - 1)
+    L = lights_uniform(k, max_zenith_deg) + rng.normal(0.0, 0.015, (k, 3))
+    L /= np.linalg.norm(L, axis=1, keepdims=True)
+    c = (np.arange(size) + 0.5) / size * 2.0 - 1.0
+    x, y = np.meshgrid(c, -c)
+    z, sx, sy, ball = _relief(x, y)
+    normals = np.stack([-sx, -sy, np.ones_like(x)], axis=-1)
+    normals /= np.linalg.norm(normals, axis=-1, keepdims=True)
+    tex = 0.5 + 0.25 * np.sin(7.0 * x + 2.0 * np.sin(3.0 * y)) * np.cos(6.0 * y) + 0.1 * np.cos(17.0 * x * y)
+    albedo = np.where(ball, 0.8, np.clip(tex, 0.15, 0.95))
+    view = np.array([0.0, 0.0, 1.0])
+    rough = np.where(ball, 0.1, 0.28 + 0.17 * np.sin(4.0 * x) * np.sin(3.0 * y))
+    ks = np.where(ball, 0.5, 0.25 + 0.15 * np.cos(5.0 * y))
+    sig2 = np.where(ball, 0.1, 0.28 + 0.17 * np.cos(3.0 * x + 1.0) * np.sin(5.0 * y)) ** 2
+    on_a = 1.0 - 0.5 * sig2 / (sig2 + 0.33)
+    on_b = 0.45 * sig2 / (sig2 + 0.09)
+    th_r = np.arccos(np.clip(normals[..., 2], -1.0, 1.0))
+    # view direction projected on the tangent plane, for the azimuth difference
+    vt = view - normals[..., 2:3] * normals
+    vt /= np.maximum(np.linalg.norm(vt, axis=-1, keepdims=True), 1e-12)
+    f0 = 0.04
+    nv = np.clip(normals[..., 2], 1e-4, 1.0)
+    rad = np.empty((k, size, size))
+    steps = np.geomspace(2.0 / size, 3.0, 40)
+    for i, li in enumerate(L):
+        nl = normals @ li
+        hv = li + view
+        hv /= np.linalg.norm(hv)
+        nh = np.clip(normals @ hv, 0.0, 1.0)
+        a2 = rough**4
+        d = a2 / (np.pi * (nh * nh * (a2 - 1.0) + 1.0) ** 2)
+        fr = f0 + (1.0 - f0) * (1.0 - float(li @ hv)) ** 5
+        kk = (rough + 1.0) ** 2 / 8.0
+        nlp = np.clip(nl, 1e-4, 1.0)
+        g = (nlp / (nlp * (1 - kk) + kk)) * (nv / (nv * (1 - kk) + kk))
+        spec = ks * d * fr * g / (4.0 * nlp * nv) * nlp
+        th_i = np.arccos(np.clip(nl, -1.0, 1.0))
+        lt = li - nl[..., None] * normals
+        lt /= np.maximum(np.linalg.norm(lt, axis=-1, keepdims=True), 1e-12)
+        cos_phi = np.clip(np.sum(lt * vt, axis=-1), 0.0, None)
+        alpha, beta = np.maximum(th_i, th_r), np.minimum(th_i, th_r)
+        diffuse = albedo * nl * (on_a + on_b * cos_phi * np.sin(alpha) * np.tan(beta))
+        direct = np.where(nl > 0.0, diffuse + spec, 0.0)
+        lit = nl > 0.0
+        for t in steps:  # march toward the light: blocked where the relief rises above the ray
+            zt, *_ = _relief(x + t * li[0], y + t * li[1])
+            lit &= zt <= z + t * li[2] + 1e-9
+            if not lit.any():
+                break
+        rad[i] = np.where(lit, direct, 0.0) + ambient * albedo
+    signal = exposure * top * rad
+    gain = top / full_well  # digital numbers per electron
+    electrons = signal / gain
+    noisy = electrons + rng.normal(size=electrons.shape) * np.sqrt(electrons + read_noise**2)
+    images = np.clip(np.round(noisy * gain), 0.0, top)
+    rim = ball & (np.hypot(x + 0.15, y + 0.2) > 0.45 - 1.5 * (2.0 / size))
+    grad = np.hypot(sx, sy)
+    mask = ~rim & (grad < 8.0)
+    normals = np.where(mask[..., None], normals, np.nan)
+    return Scene(images, L, normals, np.where(mask, albedo * exposure * top, 0.0), mask, top)
