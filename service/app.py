@@ -25,7 +25,7 @@ import numpy as np
 from fastapi import APIRouter, Depends, FastAPI, Path, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse, JSONResponse, Response
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, ConfigDict, Field
 from starlette.background import BackgroundTask
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
@@ -36,7 +36,7 @@ from service.statuses import status_of
 from storage.imageio import decode_bytes, encode_png
 from storage.layout import JobSpec, JobStore
 from storage.params import JobParams
-from storage.records import JobRecord
+from storage.records import JobRecord, JobState
 from storage.tokens import LOCAL_USER, TokenStore, User
 from worker.errors import (
     AuthError,
@@ -47,13 +47,23 @@ from worker.errors import (
     PayloadTooLargeError,
 )
 
+#: Header on result answers: "true" while the job is not done (unfinished tiles hold fill values).
+PARTIAL_HEADER = "X-Maxfs-Partial"
+
 
 class CreateJob(BaseModel):
-    """A new job: the stack's shape, the lights, and the solver parameters."""
+    """A new job: the stack's shape, the lights, and the solver parameters.
 
-    k: int = Field(ge=3, description="number of images")
-    height: int = Field(ge=1)
-    width: int = Field(ge=1)
+    Only types are checked here; values are checked by the one validator the library
+    and the CLI use too (:meth:`JobSpec.validate`, :func:`worker.problem.check_options`).
+    Unknown fields are refused, so a misspelt option is never silently ignored.
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    k: int = Field(description="number of images (at least 3)")
+    height: int = Field(description="image height in pixels")
+    width: int = Field(description="image width in pixels")
     channels: Literal[1, 3] = Field(1, description="1 = grey, 3 = RGB")
     dtype: Literal["uint8", "uint16", "float32"] = "uint8"
     lights: list[list[float]] = Field(description="k unit light directions (x right, y up, z toward camera)")
@@ -65,11 +75,11 @@ class CreateJob(BaseModel):
     tile: int | Literal["auto"] = Field(
         "auto", description="tile edge in pixels (8-4096), or auto: from k and the server's task memory"
     )
-    shadow: float | None = Field(None, ge=0, description="intensities <= this are shadows (default: eps)")
-    saturation: float | None = Field(None, gt=0, description="float input only: values >= this are saturated")
-    box_factor: float = Field(10.0, ge=1)
-    max_nodes: int = Field(200_000, ge=1)
-    milp_time_limit: float = Field(30.0, gt=0)
+    shadow: float | None = Field(None, description="intensities <= this are shadows (default: eps)")
+    saturation: float | None = Field(None, description="float input only: values >= this are saturated")
+    box_factor: float = Field(10.0, description="box on n as a multiple of the brightest value (>= 1)")
+    max_nodes: int = Field(200_000, description="exact solver's node budget per pixel (1 to 1e9)")
+    milp_time_limit: float = Field(30.0, description="MILP seconds per pixel (0 to 3600)")
 
 
 def status_body(
@@ -87,8 +97,12 @@ def status_body(
         "pixels_total": rec.pixels_total,
         "pixels_per_second": rec.pixel_rate,
         "eta_seconds": eta,
-        "certified_share": rec.certified_pixels / rec.pixels_done if rec.pixels_done else None,
+        "solved_share": rec.solved_share,
+        "certified_share": rec.certified_share,
     }
+    body["warnings"] = rec.warnings()
+    # results are complete only when done; before the first start there are none at all
+    body["results"] = {"available": rec.started_at is not None, "partial": rec.state is not JobState.DONE}
     if uploaded is not None:
         body["uploaded"] = uploaded
         body["k"] = k
@@ -212,14 +226,9 @@ class JobRoutes:
             width=req.width,
             channels=None if req.channels == 1 else req.channels,
             dtype=req.dtype,
-            lights=np.asarray(req.lights, dtype=np.float64),
-            intensities=None if req.intensities is None else np.asarray(req.intensities, dtype=np.float64),
-        )
-        if np.asarray(req.lights).shape != (req.k, 3):
-            raise InvalidInputError(
-                f"lights must be {req.k} rows of 3 numbers, got shape {np.shape(req.lights)}"
-            )
-        spec = spec.validate()
+            lights=req.lights,
+            intensities=req.intensities,
+        ).validate()
         params = JobParams.build(
             eps=req.eps,
             solver=req.solver,
@@ -317,10 +326,25 @@ class JobRoutes:
         await self.m.cancel(job_id, _user(request))
         return self._body(request, job_id)
 
+    def _results_of(self, request: Request, job_id: str) -> tuple[JobStore, dict[str, str]]:
+        """The store of a job that has results, and the headers that say whether they are
+        partial; a job never started has none (409)."""
+        rec = self.m.access(job_id, _user(request))
+        if rec.started_at is None:
+            raise ConflictError(
+                f"job {job_id} is {rec.state.value} and has not run yet, so it has no results; "
+                "upload its images and start it"
+            )
+        partial = rec.state is not JobState.DONE
+        headers = {PARTIAL_HEADER: "true" if partial else "false"}
+        return self.m.store(job_id), headers
+
     async def result(self, job_id: str, name: str, request: Request) -> Response:
-        """One output array as NPY (normal, albedo, albedo_rgb, inliers, inlier_count, optimal, mask)."""
-        self.m.access(job_id, _user(request))
-        store = self.m.store(job_id)
+        """One output array as NPY (normal, albedo, albedo_rgb, inliers, inlier_count, optimal, mask).
+
+        While the job is not done the answer is partial (unfinished tiles hold fill values)
+        and says so in the ``X-Maxfs-Partial`` header."""
+        store, headers = self._results_of(request, job_id)
         if name in store.group and store.group[name].nbytes > self.s.max_result_bytes:
             raise PayloadTooLargeError(
                 f"{name} is {store.group[name].nbytes / 2**20:.0f} MiB, more than one NPY answer may be "
@@ -330,26 +354,29 @@ class JobRoutes:
         return Response(
             npy_bytes(arr),
             media_type="application/octet-stream",
-            headers={"Content-Disposition": f'attachment; filename="{name}.npy"'},
+            headers={"Content-Disposition": f'attachment; filename="{name}.npy"'} | headers,
         )
 
     async def preview(self, job_id: str, name: str, request: Request) -> Response:
         """PNG preview: normal (paper colouring), albedo, inlier_count."""
-        self.m.access(job_id, _user(request))
         if name not in PREVIEWS:
+            self.m.access(job_id, _user(request))
             raise NotFoundError(f"no preview {name!r}; available: {', '.join(PREVIEWS)}")
-        store = self.m.store(job_id)
+        store, headers = self._results_of(request, job_id)
         arrays = {n: store.read_output(n) for n in store.output_names() if n in PREVIEW_INPUTS}
-        return Response(encode_png(render(name, arrays, store.spec.k)), media_type="image/png")
+        return Response(
+            encode_png(render(name, arrays, store.spec.k)), media_type="image/png", headers=headers
+        )
 
     async def zip(self, job_id: str, request: Request) -> FileResponse:
-        """The job's whole Zarr group as a zip archive."""
-        self.m.access(job_id, _user(request))
+        """The job's whole Zarr group as a zip archive (``X-Maxfs-Partial`` as for results)."""
+        _, headers = self._results_of(request, job_id)
         path = self.m.zip_store(job_id)
         return FileResponse(
             path,
             media_type="application/zip",
             filename=f"{job_id}.zarr.zip",
+            headers=headers,
             background=BackgroundTask(path.unlink, missing_ok=True),
         )
 

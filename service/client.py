@@ -20,6 +20,8 @@ from storage.datasets import load_folder
 from worker.errors import ConflictError, MaxfsError
 
 FINAL_STATES = ("done", "failed", "cancelled")
+#: Response header that marks partial results (the server's :data:`service.app.PARTIAL_HEADER`).
+PARTIAL_HEADER = "x-maxfs-partial"
 #: Bytes per piece of a streamed upload.
 UPLOAD_PIECE = 1 << 20
 
@@ -111,16 +113,31 @@ class MaxfsClient:
         r = self._call("GET", f"/jobs/{job_id}/results/{name}.npy")
         return np.load(io.BytesIO(r.content), allow_pickle=False)
 
-    def fetch_zarr(self, job_id: str, out: Path) -> Path:
-        """Download the job's Zarr group (zip) and unpack it at ``out``."""
+    def fetch_zarr(self, job_id: str, out: Path, *, partial: bool = False) -> Path:
+        """Download the job's Zarr group (zip) and unpack it at ``out``.
+
+        A job that is not done has partial results (unfinished tiles hold fill values):
+        they are refused unless ``partial`` (use :meth:`wait` first to get complete ones).
+        """
         out = Path(out)
         if out.exists():
             raise ConflictError(f"{out} already exists; choose a new output path")
+        if not partial:
+            st = self.status(job_id)
+            if st["state"] != "done":
+                p = st.get("progress", {})
+                raise ConflictError(
+                    f"job {job_id} is {st['state']} ({p.get('tiles_done', 0)} of {p.get('tiles_total', 0)} "
+                    "tiles finished), so its results are partial; wait for it (--wait) or fetch what is "
+                    "finished (--partial)"
+                )
         with tempfile.TemporaryFile() as tmp:
             with self.http.stream("GET", f"/jobs/{job_id}/results.zip") as r:
                 if r.status_code >= 400:
                     r.read()
                     raise error_for_status(r.status_code)(f"server said {r.status_code}: {r.text}")
+                if r.headers.get(PARTIAL_HEADER) == "true" and not partial:
+                    raise ConflictError(f"job {job_id} was restarted while fetching; its results are partial")
                 for chunk in r.iter_bytes():
                     tmp.write(chunk)
             tmp.seek(0)

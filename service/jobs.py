@@ -36,6 +36,7 @@ from storage.tokens import User
 from worker.errors import (
     ConflictError,
     InsufficientStorageError,
+    InvalidInputError,
     NotFoundError,
     PayloadTooLargeError,
     QuotaError,
@@ -244,8 +245,9 @@ class JobManager:
         return await self._write_before_start(job_id, "images can be uploaded", write, image=True)
 
     async def upload_mask(self, job_id: str, mask: NDArray[np.bool_]) -> JobRecord:
+        pause = (lambda: time.sleep(60)) if self.settings.fault == "pause-mask-write" else None
         return await self._write_before_start(
-            job_id, "the mask can be set", lambda store: store.write_mask(mask), image=False
+            job_id, "the mask can be set", lambda store: store.write_mask(mask, pause), image=False
         )
 
     async def start_job(self, job_id: str, user: User) -> JobRecord:
@@ -256,12 +258,20 @@ class JobManager:
                 raise ConflictError(f"job {job_id} is already {rec.state.value}")
             if rec.state is JobState.DONE:
                 raise ConflictError(f"job {job_id} is already done")
-            missing = np.flatnonzero(~self.store(job_id).uploaded())
+            store = self.store(job_id)
+            missing = np.flatnonzero(~store.uploaded())
             if missing.size:
                 raise ConflictError(
                     f"job {job_id} is missing {missing.size} images (first: {int(missing[0])}); "
                     "upload them first"
                 )
+            if store.mask_state() == "incomplete":
+                raise ConflictError(
+                    f"job {job_id}: the mask upload was cut short (the server stopped while writing it); "
+                    "upload the mask again"
+                )
+            if not store.read_mask().any():
+                raise InvalidInputError(f"job {job_id}: the mask selects no pixel; upload a mask with some")
             if rec.state.final and self.open_jobs(User(rec.owner)) >= self.settings.max_open_jobs:
                 raise QuotaError(
                     f"user {rec.owner!r} already has {self.settings.max_open_jobs} unfinished jobs; "

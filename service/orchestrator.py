@@ -15,12 +15,12 @@ import uuid
 from collections.abc import Callable
 from pathlib import Path
 
-import numpy as np
 from distributed import Client, as_completed
 
 from storage.layout import JobStore
 from storage.records import JobRecord, JobState, load_record, save_record
 from worker.errors import JobCancelledError
+from worker.problem import check_options
 from worker.task import TileOutcome, estimate_store_eps, run_tile, warm_up
 
 ProgressFn = Callable[[JobRecord], None]
@@ -31,15 +31,12 @@ async def warm_workers(client: Client) -> None:
     await client.run(warm_up)
 
 
-def _done_counts(store: JobStore) -> tuple[int, int, int, int]:
-    """(tiles done, active pixels done, active pixels total, certified pixels done)."""
-    mask = store.read_mask()
-    done = store.done_grid()
-    T = store.params.tile
-    done_px = np.kron(done, np.ones((T, T), dtype=bool))[: mask.shape[0], : mask.shape[1]]
-    px_done = int((mask & done_px).sum())
-    cert = int((np.asarray(store.group["optimal"][...]) & mask & done_px).sum()) if done.any() else 0
-    return int(done.sum()), px_done, int(mask.sum()), cert
+def _count_finished(rec: JobRecord, store: JobStore) -> None:
+    """Set the record's counts from what the store's finished tiles hold."""
+    c = store.progress()
+    rec.tiles_done, rec.tiles_total = c.tiles_done, c.tiles_total
+    rec.pixels_done, rec.pixels_total = c.pixels_done, c.pixels_total
+    rec.solved_pixels, rec.certified_pixels = c.solved, c.certified
 
 
 async def run_job(
@@ -76,12 +73,13 @@ async def run_job(
             key = f"maxfs-eps-{rec.id}-{uuid.uuid4().hex[:8]}"
             eps = await client.submit(estimate_store_eps, str(job_dir), key=key, pure=False, retries=retries)
             params = params.with_eps(eps)
+            # the estimate must fit the other thresholds (e.g. a saturation given by hand)
+            check_options(eps=eps, shadow=params.shadow, saturation=params.saturation)
             store.set_params(params)
         rec.eps = params.eps
         tiles = store.tiles()
         done = store.done_grid().ravel()
-        rec.tiles_total = len(tiles)
-        rec.tiles_done, rec.pixels_done, rec.pixels_total, rec.certified_pixels = _done_counts(store)
+        _count_finished(rec, store)
         rec.state, rec.started_at, rec.pixel_rate = JobState.RUNNING, time.time(), None
         save()
         digest, nonce = params.digest(), uuid.uuid4().hex[:8]
@@ -116,6 +114,7 @@ async def run_job(
             if out.status == "done":
                 rec.tiles_done += 1
                 rec.pixels_done += out.active
+                rec.solved_pixels += out.solved
                 rec.certified_pixels += out.certified
                 px_run += out.active
                 rec.pixel_rate = px_run / max(time.monotonic() - t0, 1e-9)
@@ -129,7 +128,7 @@ async def run_job(
             raise RuntimeError(
                 "some tiles finished without their done marker; start the job again to finish it"
             )
-        rec.tiles_done, rec.pixels_done, rec.pixels_total, rec.certified_pixels = _done_counts(store)
+        _count_finished(rec, store)
         rec.state, rec.finished_at = JobState.DONE, time.time()
         save()
         return rec

@@ -55,6 +55,9 @@ class Settings(BaseSettings):
     #: Server URL and API token used by ``maxfs submit/status/fetch/cancel``.
     server: str = "http://127.0.0.1:8000"
     token: str = ""
+    #: Tests only: a fault to inject ("pause-mask-write": a mask write stops after its first
+    #: band for a minute, so a test can kill the server mid-write). Empty in real use.
+    fault: str = ""
 
     @property
     def tokens_file(self) -> Path:

@@ -18,6 +18,7 @@ Images are read one at a time (:meth:`Dataset.read`), never as a whole stack.
 
 from __future__ import annotations
 
+import hashlib
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -45,6 +46,22 @@ class Dataset:
     intensities: NDArray[np.float64] | None
     mask: NDArray[np.bool_] | None
     _reader: Callable[[int], NDArray]
+    #: Files the dataset is read from (images, mask, lights): their fingerprint lets a
+    #: re-run recognise unchanged inputs without decoding them again.
+    files: tuple[Path, ...] = ()
+
+    def fingerprint(self) -> str | None:
+        """Digest of the listed files' paths, sizes and modification times (None without files)."""
+        if not self.files:
+            return None
+        h = hashlib.sha256()
+        for p in self.files:
+            try:
+                st = Path(p).stat()
+            except OSError:
+                return None
+            h.update(f"{Path(p).resolve()}|{st.st_size}|{st.st_mtime_ns}\n".encode())
+        return h.hexdigest()
 
     def read(self, i: int) -> NDArray:
         """Image ``i`` as stored (uint8/uint16/float32; (H, W) or (H, W, 3))."""
@@ -122,6 +139,11 @@ def _mask_from(path: Path) -> NDArray[np.bool_]:
     return m > thresh
 
 
+def _existing(paths: list[Path], folder: Path, *names: str) -> tuple[Path, ...]:
+    """``paths`` plus those of ``names`` in ``folder`` that exist."""
+    return (*paths, *(folder / n for n in names if (folder / n).exists()))
+
+
 def _probe(name: str, layout: str, k: int, reader: Callable[[int], NDArray], **kw) -> Dataset:
     first = reader(0)
     h, w = first.shape[:2]
@@ -155,6 +177,7 @@ def _diligent(folder: Path) -> Dataset:
         lights=lights,
         intensities=inten,
         mask=mask,
+        files=_existing(paths, folder, "mask.png", "light_directions.txt", "light_intensities.txt"),
     )
     if inten is not None and ds.channels is None:
         # grey images with RGB intensities: use their mean
@@ -228,6 +251,16 @@ def _npy(folder: Path) -> Dataset:
         lights=lights,
         intensities=inten,
         mask=mask,
+        files=_existing(
+            [folder / "images.npy"],
+            folder,
+            "lights.npy",
+            "lights.txt",
+            "intensities.npy",
+            "intensities.txt",
+            "mask.npy",
+            "mask.png",
+        ),
     )
 
 
@@ -256,7 +289,14 @@ def _uw(folder: Path) -> Dataset:
     mask_path = resolve(entries[k]) if len(entries) > k else folder / f"{folder.name}.mask.tga"
     mask = _mask_from(mask_path) if mask_path.exists() else None
     return _probe(
-        folder.name, "uw-psm", k, lambda i: read_image(paths[i]), lights=lights, intensities=None, mask=mask
+        folder.name,
+        "uw-psm",
+        k,
+        lambda i: read_image(paths[i]),
+        lights=lights,
+        intensities=None,
+        mask=mask,
+        files=(*paths, *([mask_path] if mask_path.exists() else []), root / "lights.txt", listing),
     )
 
 

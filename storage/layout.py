@@ -131,7 +131,9 @@ class JobSpec:
         if self.k < 3:
             raise InvalidInputError(f"photometric stereo needs at least 3 images, got k={self.k}")
         if self.height < 1 or self.width < 1:
-            raise InvalidInputError(f"image size must be positive, got {self.height} x {self.width}")
+            raise InvalidInputError(
+                f"image height and width must be positive, got height={self.height}, width={self.width}"
+            )
         if self.channels not in (None, 3):
             raise InvalidInputError(f"channels must be 1 (grey) or 3 (RGB), got {self.channels}")
         if self.dtype not in DTYPES:

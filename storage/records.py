@@ -18,6 +18,8 @@ from typing import Any
 from worker.errors import StoreError
 
 RECORD_NAME = "maxfs-job.json"
+#: Below this share of solved masked pixels a result comes with a loud warning.
+LOW_SOLVED_SHARE = 0.5
 
 
 class JobState(StrEnum):
@@ -59,12 +61,37 @@ class JobRecord:
     error: str | None = None
     tiles_total: int = 0
     tiles_done: int = 0
-    pixels_total: int = 0
-    pixels_done: int = 0
-    certified_pixels: int = 0
-    solved_pixels: int = 0
+    pixels_total: int = 0  # pixels inside the mask
+    pixels_done: int = 0  # ... in finished tiles
+    certified_pixels: int = 0  # ... that got a normal whose optimum was proved
+    solved_pixels: int = 0  # ... that got a normal
     pixel_rate: float | None = None  # pixels per second in this run
     eps: float | None = None
+
+    @property
+    def solved_share(self) -> float | None:
+        """Share of the finished masked pixels that got a normal."""
+        return self.solved_pixels / self.pixels_done if self.pixels_done else None
+
+    @property
+    def certified_share(self) -> float | None:
+        """Share of the finished masked pixels with a normal whose optimum was proved
+        (never for ``l2``, which proves nothing)."""
+        return self.certified_pixels / self.pixels_done if self.pixels_done else None
+
+    def warnings(self) -> list[str]:
+        """What a user must hear about a result that is technically complete."""
+        out = []
+        share = self.solved_share
+        if share is not None and share < LOW_SOLVED_SHARE:
+            out.append(
+                f"only {share:.1%} of the {self.pixels_done} masked pixels got a normal: most pixels have "
+                "fewer than 3 usable images (shadowed, saturated or rank-deficient lights); check the "
+                "mask, the shadow threshold and eps"
+            )
+        if self.state is JobState.DONE and self.pixels_total == 0:
+            out.append("the mask selects no pixel: nothing was solved")
+        return out
 
     def to_json(self) -> dict[str, Any]:
         d = asdict(self)

@@ -11,6 +11,7 @@ import socket
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import httpx
@@ -19,6 +20,15 @@ from distributed import Client
 from storage.tokens import TokenStore
 
 BIN = Path(sys.executable).parent
+
+
+def poll_until(check: Callable[[], bool], timeout: float, what: str, interval: float = 0.1) -> None:
+    """Call ``check`` until it is true; fail loudly (never silently give up) after ``timeout`` s."""
+    t0 = time.monotonic()
+    while not check():
+        if time.monotonic() - t0 > timeout:
+            raise AssertionError(f"timed out after {timeout} s waiting for: {what}")
+        time.sleep(interval)
 
 
 def free_port() -> int:

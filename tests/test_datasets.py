@@ -10,13 +10,12 @@ import pytest
 import tifffile
 
 from storage.datasets import load_folder, write_npy_folder
+from tests.data import UW, UW_OBJECTS, needs_shared
 from worker import synthetic
 from worker.errors import DatasetError
 
-UW = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "uw-psm"
-UW_OBJECTS = ("buddha", "cat", "chrome", "gray", "horse", "owl", "rock")
 
-
+@needs_shared
 @pytest.mark.parametrize("obj", UW_OBJECTS)
 def test_uw_psm_objects_load(obj: str) -> None:
     ds = load_folder(UW / obj)

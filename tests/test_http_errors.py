@@ -5,10 +5,8 @@ from __future__ import annotations
 
 import hashlib
 import json
-import shutil
-import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from http.client import HTTPConnection
 from pathlib import Path
 from typing import Any
@@ -18,7 +16,7 @@ import imagecodecs
 import numpy as np
 import pytest
 
-from tests.procs import Server
+from tests.procs import Server, poll_until
 from worker import synthetic
 
 K, H, W = 4, 8, 6
@@ -27,23 +25,30 @@ GOOD = {"k": K, "height": H, "width": W, "dtype": "uint8", "lights": LIGHTS, "ep
 
 
 MAX_OPEN, MAX_K, MAX_PIXELS = 3, 64, 1_000_000
-#: Free disk kept in reserve is set so that ~50 MB remain: small jobs fit, a 140 MB one does not.
-HEADROOM = 50 << 20
 
 
-@pytest.fixture(scope="module")
-def server(tmp_path_factory: pytest.TempPathFactory):
-    tmp = tmp_path_factory.mktemp("http")
+def _start(tmp: Path, reserve: int) -> Server:
     env = {
         "MAXFS_MAX_OPEN_JOBS": str(MAX_OPEN),
         "MAXFS_MAX_K": str(MAX_K),
         "MAXFS_MAX_PIXELS": str(MAX_PIXELS),
-        "MAXFS_MIN_FREE_BYTES": str(shutil.disk_usage(tmp).free - HEADROOM),
+        "MAXFS_MIN_FREE_BYTES": str(reserve),
     }
     s = Server(tmp / "data", "", tmp, workers=1, auth=True, env=env)
     s.tokens = {"alice": s.token("alice"), "bob": s.token("bob"), "root": s.token("root", admin=True)}
-    yield s
-    s.kill()
+    return s
+
+
+@pytest.fixture(scope="module")
+def servers(tmp_path_factory: pytest.TempPathFactory):
+    """The main server keeps no disk reserve, so whatever else writes to the disk meanwhile
+    cannot turn its cases into 507s; the "full" server's reserve is larger than any disk,
+    so every job it is asked to store gets 507."""
+    main = _start(tmp_path_factory.mktemp("http"), 0)
+    full = _start(tmp_path_factory.mktemp("http-full"), 1 << 62)
+    yield {"main": main, "full": full}
+    main.kill()
+    full.kill()
 
 
 def _auth(server: Server, user: str) -> dict[str, str]:
@@ -59,16 +64,18 @@ def _snapshot(root: Path) -> dict[str, str]:
 
 
 def _job(http: httpx.Client, uploaded: int = 0, started: bool = False) -> str:
-    jid = http.post("/jobs", json=GOOD).json()["id"]
+    """A job of alice's in the given stage; every setup request must succeed."""
+    r = http.post("/jobs", json=GOOD)
+    assert r.status_code == 201, f"setup: create answered {r.status_code}: {r.text}"
+    jid = r.json()["id"]
     for i in range(uploaded):
         img = np.full((H, W), 40 + 30 * i, np.uint8)
-        assert http.put(f"/jobs/{jid}/images/{i}", content=img.tobytes()).status_code == 200
+        r = http.put(f"/jobs/{jid}/images/{i}", content=img.tobytes())
+        assert r.status_code == 200, f"setup: upload answered {r.status_code}: {r.text}"
     if started:
-        assert http.post(f"/jobs/{jid}/start").status_code == 202
-        for _ in range(300):
-            if http.get(f"/jobs/{jid}").json()["state"] == "done":
-                break
-            time.sleep(0.1)
+        r = http.post(f"/jobs/{jid}/start")
+        assert r.status_code == 202, f"setup: start answered {r.status_code}: {r.text}"
+        poll_until(lambda: http.get(f"/jobs/{jid}").json()["state"] == "done", 60, "setup job done")
     return jid
 
 
@@ -81,7 +88,8 @@ class Bad:
     uploaded: int = 0
     started: bool = False
     extra_jobs: int = 0  # more open jobs of the same user before the request
-    extra: dict[str, Any] = field(default_factory=dict)
+    server: str = "main"  # "full": the server whose disk reserve no job fits in
+    setup: bool = True  # make a job first (off for cases on the "full" server)
 
 
 def _create(**changes: Any) -> Callable[[httpx.Client, str], httpx.Response]:
@@ -139,7 +147,7 @@ PNG_16 = imagecodecs.png_encode(np.zeros((H, W), np.uint16))
 
 CASES = [
     Bad("k-below-3", _create(k=2, lights=LIGHTS[:2]), 422, "k"),
-    Bad("lights-count", _create(lights=LIGHTS[:3]), 422, "lights must be 4 rows of 3 numbers"),
+    Bad("lights-count", _create(lights=LIGHTS[:3]), 422, "3 light directions for 4 images"),
     Bad("lights-not-unit", _create(lights=[[0, 0, 2]] * K), 422, "unit vectors"),
     Bad("lights-zero", _create(lights=[[0, 0, 0]] * K), 422, "unit vectors"),
     Bad("lights-not-3d", _create(lights=[[0, 1]] * K), 422, "rows of 3"),
@@ -237,12 +245,31 @@ CASES = [
         "MAX_K",
     ),
     Bad("pixels-over-limit", _create(height=2000, width=1000), 413, "MAX_PIXELS"),
+    Bad("disk-full", _create(), 507, "free above its reserve", server="full", setup=False),
+    # one validator: every bad option is a 422 before anything is stored (issue #9)
+    Bad("saturation-below-shadow", _create(saturation=2.0, shadow=5.0), 422, "must be above shadow"),
+    Bad("saturation-below-eps", _create(saturation=0.5), 422, "must be above eps"),
+    Bad("shadow-infinite", _raw_json(json.dumps({**GOOD, "shadow": float("inf")})), 422, "finite"),
+    Bad("box-factor-infinite", _raw_json(json.dumps({**GOOD, "box_factor": float("inf")})), 422, "finite"),
+    Bad("box-factor-below-1", _create(box_factor=0.5), 422, "box_factor"),
+    Bad("eps-infinite", _raw_json(json.dumps({**GOOD, "eps": float("inf")})), 422, "eps"),
+    Bad("max-nodes-past-int64", _create(max_nodes=2**70), 422, "max_nodes must be between"),
+    Bad("max-nodes-zero", _create(max_nodes=0), 422, "max_nodes"),
+    Bad("milp-time-zero", _create(milp_time_limit=0), 422, "milp_time_limit"),
+    Bad("lights-ragged", _create(lights=[[0, 0, 1], [0, 1], *LIGHTS[2:]]), 422, "rows of 3 numbers"),
+    Bad("intensities-ragged", _create(intensities=[[1, 1], [1], [1, 1], [1, 1]]), 422, "light intensities"),
+    Bad("unknown-field", _create(epsilon=3), 422, "epsilon: Extra inputs are not permitted"),
     Bad(
-        "disk-full",
-        _create(k=60, height=1000, width=1000, dtype="uint16", lights=synthetic.lights_uniform(60).tolist()),
-        507,
-        "free above its reserve",
+        "lights-coplanar",
+        _create(lights=[[0, 0, 1], [0, 0.6, 0.8], [0, -0.6, 0.8], [0, 0.8, 0.6]]),
+        422,
+        "singular values",
     ),
+    Bad("lights-repeated", _create(lights=[[0, 0, 1]] * K), 422, "rank < 3"),
+    # results exist only once a job has run (issue #9)
+    Bad("result-before-start", lambda h, j: h.get(f"/jobs/{j}/results/normal.npy"), 409, "has not run yet"),
+    Bad("preview-before-start", lambda h, j: h.get(f"/jobs/{j}/previews/normal.png"), 409, "not run yet"),
+    Bad("zip-before-start", lambda h, j: h.get(f"/jobs/{j}/results.zip"), 409, "not run yet", uploaded=K),
 ]
 
 
@@ -259,11 +286,12 @@ def test_catalogue_is_large_enough() -> None:
 
 
 @pytest.mark.parametrize("case", CASES, ids=lambda c: c.name)
-def test_bad_request(server: Server, case: Bad) -> None:
+def test_bad_request(servers: dict[str, Server], case: Bad) -> None:
+    server = servers[case.server]
     with httpx.Client(base_url=server.url, headers=_auth(server, "alice"), timeout=60) as http:
         http.tokens = server.tokens
         try:
-            jid = _job(http, case.uploaded, case.started)
+            jid = _job(http, case.uploaded, case.started) if case.setup else "0" * 32
             for _ in range(case.extra_jobs):
                 _job(http)
             before = _snapshot(server.data)

@@ -194,7 +194,7 @@ def check_lights(lights: ArrayLike, k: int | None = None) -> NDArray[np.float64]
     except (ValueError, TypeError):
         raise InvalidInputError("lights must be k rows of 3 numbers each (x, y, z)") from None
     if arr.ndim != 2 or arr.shape[1] != 3:
-        raise InvalidInputError(f"lights must have shape (k, 3), got {arr.shape}")
+        raise InvalidInputError(f"lights must be k rows of 3 numbers (x, y, z), got shape {arr.shape}")
     if k is not None and arr.shape[0] != k:
         raise InvalidInputError(f"{arr.shape[0]} light directions for {k} images; give one per image")
     if not np.all(np.isfinite(arr)):

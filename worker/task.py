@@ -41,12 +41,17 @@ def run_tile(job_dir: str, tile_index: int, params_hash: str) -> TileOutcome:
         raise StoreError(f"job parameters changed since tile {tile_index} was scheduled; restart the job")
     t = store.tiles()[tile_index]
     token = params.token()
-    if int(store.group["done"][t.ty, t.tx]) == token:
+    if store.tile_done(t):
         return TileOutcome(tile_index, "skipped")
     if store.cancel_requested:
         return TileOutcome(tile_index, "cancelled")
     t0 = time.perf_counter()
-    raw, mask = store.read_tile(t)
+    mask = store.read_tile_mask(t)
+    if not mask.any():  # nothing of the object here: fill values, no image read, no solve
+        store.write_empty_tile(t, token)
+        store.log_run(tile_index, "done")
+        return TileOutcome(tile_index, "done", pixels=mask.size, seconds=time.perf_counter() - t0)
+    raw = store.read_tile_images(t)
     spec = store.spec
     th = make_thresholds(
         spec.k, params.eps, shadow=params.shadow, saturation=params.saturation, box_factor=params.box_factor
@@ -61,15 +66,17 @@ def run_tile(job_dir: str, tile_index: int, params_hash: str) -> TileOutcome:
         max_nodes=params.max_nodes,
         milp_time_limit=params.milp_time_limit,
     )
-    store.write_tile(t, res, token)
+    solved = np.isfinite(res.normal[..., 0]) & mask
+    stats = (int(mask.sum()), int(solved.sum()), int((res.optimal & solved).sum()))
+    store.write_tile(t, res, token, stats)
     store.log_run(tile_index, "done")
     return TileOutcome(
         tile_index,
         "done",
         pixels=mask.size,
-        active=int(mask.sum()),
-        solved=int(np.isfinite(res.normal[..., 0]).sum()),
-        certified=int((res.optimal & mask).sum()),
+        active=stats[0],
+        solved=stats[1],
+        certified=stats[2],
         nodes=res.nodes,
         seconds=time.perf_counter() - t0,
     )
