@@ -111,6 +111,42 @@ RUNS_LOG = "maxfs-runs.log"
 CANCEL_FLAG = "maxfs-cancel"
 #: Output arrays a client may fetch.
 OUTPUTS = ("normal", "albedo", "albedo_rgb", "inliers", "inlier_count", "optimal", "mask", "depth")
+#: Zarr v3 ``dimension_names`` of every array (``images`` gets ``channel`` last for colour input), so
+#: ``xarray.open_zarr`` reads a store as a Dataset with named dimensions.
+DIMS: dict[str, tuple[str, ...]] = {
+    "images": ("image", "y", "x"),
+    "uploaded": ("image",),
+    "lights": ("image", "xyz"),
+    "intensities": ("image", "channel"),
+    "mask": ("y", "x"),
+    "normal": ("y", "x", "xyz"),
+    "albedo": ("y", "x"),
+    "albedo_rgb": ("y", "x", "channel"),
+    "inliers": ("image", "y", "x"),
+    "inlier_count": ("y", "x"),
+    "optimal": ("y", "x"),
+    "depth": ("y", "x"),
+    "done": ("tile_y", "tile_x"),
+    "tile_stats": ("tile_y", "tile_x", "tile_count"),
+    "input_digests": ("input", "digest_byte"),
+}
+#: ``long_name`` (and ``units``) attributes of the arrays, for xarray and other readers.
+DESCRIPTIONS: dict[str, dict[str, str]] = {
+    "images": {"long_name": "input images as stored (raw values)"},
+    "uploaded": {"long_name": "image i is completely stored"},
+    "lights": {"long_name": "unit light directions (x right, y up, z toward the camera)"},
+    "intensities": {"long_name": "light intensities per image and channel"},
+    "mask": {"long_name": "pixels to solve"},
+    "normal": {"long_name": "unit surface normal (x right, y up, z toward the camera); NaN where unsolved"},
+    "albedo": {"long_name": "albedo (grey), in image units; 0 where unsolved"},
+    "albedo_rgb": {"long_name": "albedo per colour channel, in image units; 0 where unsolved"},
+    "inliers": {"long_name": "image i obeys the Lambertian law at this pixel (the optimal inlier set)"},
+    "inlier_count": {"long_name": "number of inlier images (the Max-FS optimum)", "units": "images"},
+    "optimal": {"long_name": "the optimum is proved"},
+    "done": {"long_name": "per-tile marker: equal to the parameter token when the tile is finished"},
+    "tile_stats": {"long_name": "per tile: active, solved and certified pixels"},
+    "input_digests": {"long_name": "BLAKE2b-256 of image i; last row: the mask"},
+}
 #: Outputs indexed (image, y, x); every other output is (y, x[, ...]).
 IMAGE_FIRST = frozenset({"inliers"})
 
@@ -244,21 +280,80 @@ class JobStore:
             shards=img_shards,
             dtype=spec.dtype,
             fill_value=0,
+            dimension_names=DIMS["images"] + (("channel",) if C is not None else ()),
         )
-        g.create_array("uploaded", shape=(k,), chunks=(1,), dtype="bool", fill_value=False)
-        g.create_array("lights", data=spec.lights)
-        g.create_array("intensities", data=spec.intensities)
-        g.create_array("mask", shape=(H, W), chunks=tc, dtype="bool", fill_value=True)
-        g.create_array("normal", shape=(H, W, 3), chunks=(*tc, 3), dtype="float32", fill_value=np.nan)
-        g.create_array("albedo", shape=(H, W), chunks=tc, dtype="float32", fill_value=0.0)
-        if C is not None:
-            g.create_array("albedo_rgb", shape=(H, W, C), chunks=(*tc, C), dtype="float32", fill_value=0.0)
-        g.create_array("inliers", shape=(k, H, W), chunks=(k, *tc), dtype="bool", fill_value=False)
-        g.create_array("inlier_count", shape=(H, W), chunks=tc, dtype="uint16", fill_value=0)
-        g.create_array("optimal", shape=(H, W), chunks=tc, dtype="bool", fill_value=False)
-        g.create_array("done", shape=grid_shape(H, W, T), chunks=(1, 1), dtype="int32", fill_value=0)
         g.create_array(
-            "tile_stats", shape=(*grid_shape(H, W, T), 3), chunks=(1, 1, 3), dtype="int64", fill_value=0
+            "uploaded",
+            shape=(k,),
+            chunks=(1,),
+            dtype="bool",
+            fill_value=False,
+            dimension_names=DIMS["uploaded"],
+        )
+        g.create_array("lights", data=spec.lights, dimension_names=DIMS["lights"])
+        g.create_array("intensities", data=spec.intensities, dimension_names=DIMS["intensities"])
+        g.create_array(
+            "mask", shape=(H, W), chunks=tc, dtype="bool", fill_value=True, dimension_names=DIMS["mask"]
+        )
+        g.create_array(
+            "normal",
+            shape=(H, W, 3),
+            chunks=(*tc, 3),
+            dtype="float32",
+            fill_value=np.nan,
+            dimension_names=DIMS["normal"],
+        )
+        g.create_array(
+            "albedo", shape=(H, W), chunks=tc, dtype="float32", fill_value=0.0, dimension_names=DIMS["albedo"]
+        )
+        if C is not None:
+            g.create_array(
+                "albedo_rgb",
+                shape=(H, W, C),
+                chunks=(*tc, C),
+                dtype="float32",
+                fill_value=0.0,
+                dimension_names=DIMS["albedo_rgb"],
+            )
+        g.create_array(
+            "inliers",
+            shape=(k, H, W),
+            chunks=(k, *tc),
+            dtype="bool",
+            fill_value=False,
+            dimension_names=DIMS["inliers"],
+        )
+        g.create_array(
+            "inlier_count",
+            shape=(H, W),
+            chunks=tc,
+            dtype="uint16",
+            fill_value=0,
+            dimension_names=DIMS["inlier_count"],
+        )
+        g.create_array(
+            "optimal",
+            shape=(H, W),
+            chunks=tc,
+            dtype="bool",
+            fill_value=False,
+            dimension_names=DIMS["optimal"],
+        )
+        g.create_array(
+            "done",
+            shape=grid_shape(H, W, T),
+            chunks=(1, 1),
+            dtype="int32",
+            fill_value=0,
+            dimension_names=DIMS["done"],
+        )
+        g.create_array(
+            "tile_stats",
+            shape=(*grid_shape(H, W, T), 3),
+            chunks=(1, 1, 3),
+            dtype="int64",
+            fill_value=0,
+            dimension_names=DIMS["tile_stats"],
         )
         g.create_array(
             "input_digests",
@@ -266,7 +361,11 @@ class JobStore:
             chunks=(1, DIGEST_BYTES),
             dtype="uint8",
             fill_value=0,
+            dimension_names=DIMS["input_digests"],
         )
+        for name, desc in DESCRIPTIONS.items():
+            if name in g:
+                g[name].attrs.update(desc)
         # attrs last: a store without them is detected as incomplete on open
         g.attrs.update(
             {

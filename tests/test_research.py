@@ -231,3 +231,37 @@ def test_normal_preview_is_n_plus_one_over_two_in_all_channels() -> None:
 
     n = np.array([[[0.0, 0.0, 1.0], [0.6, -0.8, 0.0], [np.nan, np.nan, np.nan]]])
     np.testing.assert_array_equal(normal_rgb(n), [[[128, 128, 255], [204, 25, 128], [0, 0, 0]]])
+
+
+# -- stores other tools read -----------------------------------------------------------------------------
+@pytest.mark.parametrize("channels", [None, 3])
+def test_xarray_opens_a_job_store_with_named_dimensions(tmp_path: Path, channels: int | None) -> None:
+    import xarray as xr
+
+    from service.research import write_depth
+
+    n, _, m = _sphere(24, 10)
+    if channels is None:
+        store = _store_with_normals(tmp_path / "out.zarr", n, m)
+        write_depth(store.path)
+    else:
+        lights = np.array([[0.0, 0.0, 1.0], [0.5, 0.0, 0.866], [0.0, 0.5, 0.866]])
+        spec = JobSpec(3, 24, 24, 3, "uint16", lights, np.ones((3, 3)))
+        store = JobStore.create(tmp_path / "out.zarr", spec, JobParams.build(eps=1.0, tile=16))
+    ds = xr.open_zarr(store.path, consolidated=False)
+    k = store.spec.k
+    assert ds["normal"].dims == ("y", "x", "xyz") and ds.sizes["xyz"] == 3
+    assert ds["inliers"].dims == ("image", "y", "x") and ds.sizes["image"] == k
+    assert ds["lights"].dims == ("image", "xyz")
+    if channels is None:
+        assert ds["images"].dims == ("image", "y", "x") and "albedo_rgb" not in ds
+        assert ds["depth"].dims == ("y", "x") and ds["depth"].attrs["units"] == "pixels"
+        assert "residual_rms" in ds["depth"].attrs
+        np.testing.assert_array_equal(ds["normal"].values, store.read_output("normal"))
+        np.testing.assert_array_equal(ds["albedo"].values, store.read_output("albedo"))  # 0 stays 0
+        assert ds["inlier_count"].dtype == np.uint16
+    else:
+        assert ds["images"].dims == ("image", "y", "x", "channel") and ds.sizes["channel"] == 3
+        assert ds["albedo_rgb"].dims == ("y", "x", "channel")
+    assert "long_name" in ds["normal"].attrs
+    assert ds.attrs["k"] == k and ds.attrs["params"]["tile"] == store.params.tile
