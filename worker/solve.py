@@ -122,7 +122,7 @@ def solve_pixels(
     if solver is Solver.L2:
         inl = np.isfinite(I) & act[:, None]
         point = refit(I, inl, L)
-        optimal = np.ones(P, dtype=bool)
+        optimal = np.zeros(P, dtype=bool)  # least squares proves no optimum
     else:
         point = np.full((P, 3), np.nan)
         inl = np.zeros((P, k), dtype=bool)
