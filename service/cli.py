@@ -51,6 +51,14 @@ def _tile(value: str) -> int | str:
         ) from None
 
 
+def _images_arg(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--images",
+        default=None,
+        help="use only these images, numbered from 1 in the folder's order, e.g. 1-20,25",
+    )
+
+
 def _server_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--server", default=None, help="server URL (default: MAXFS_SERVER)")
     p.add_argument("--token", default=None, help="API token (default: MAXFS_TOKEN)")
@@ -67,14 +75,27 @@ def _progress(rec: Any) -> None:
     print("\r" + format_progress(rec), end=end, file=sys.stderr, flush=True)
 
 
+def _dataset(args: argparse.Namespace) -> Any:
+    """The input folder, restricted to ``--images``; warns about badly conditioned lights."""
+    from storage.datasets import load_folder
+    from storage.folders import conditioning_warning, parse_selection, select_images
+
+    ds = load_folder(args.folder)
+    if getattr(args, "images", None):
+        ds = select_images(ds, parse_selection(args.images, ds.k))
+    warning = conditioning_warning(ds.lights)
+    if warning:
+        print(f"maxfs: WARNING: {warning}", file=sys.stderr)
+    return ds
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     from service.local import ingest, run_store
-    from storage.datasets import load_folder
     from storage.layout import JobSpec
     from storage.params import JobParams
 
     settings = Settings()
-    ds = load_folder(args.folder)
+    ds = _dataset(args)
     spec = JobSpec(ds.k, ds.height, ds.width, ds.channels, ds.dtype, ds.lights, ds.intensities).validate()
     kw = _params(args)
     params = JobParams.build(**kw | {"tile": spec.resolve_tile(kw["tile"], settings.task_memory)})
@@ -258,7 +279,7 @@ def cmd_token(args: argparse.Namespace) -> int:
 
 def cmd_submit(args: argparse.Namespace) -> int:
     with _client(args) as c:
-        print(c.submit_folder(Path(args.folder), **_params(args)))
+        print(c.submit_folder(_dataset(args), **_params(args)))
     return 0
 
 
@@ -309,6 +330,7 @@ def parser() -> argparse.ArgumentParser:
         help="ground-truth normals to report the angular error against (default: "
         "the folder's Normal_gt.mat when present)",
     )
+    _images_arg(p)
     p.set_defaults(fn=cmd_run)
     p = sub.add_parser("eval", help="angular error of a result against ground-truth normals")
     p.add_argument("store", help="a job store (OUT.zarr)")
@@ -359,6 +381,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("folder")
     _server_args(p)
     _solver_args(p)
+    _images_arg(p)
     p.set_defaults(fn=cmd_submit)
     p = sub.add_parser("fetch", help="download a job's results as a Zarr folder")
     p.add_argument("job_id")

@@ -16,7 +16,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from service.statuses import error_for_status
-from storage.datasets import load_folder
+from storage.datasets import Dataset, load_folder
 from worker.errors import ConflictError, MaxfsError
 
 FINAL_STATES = ("done", "failed", "cancelled")
@@ -156,12 +156,13 @@ class MaxfsClient:
                 raise
         return out
 
-    def submit_folder(self, folder: Path, **params: Any) -> str:
-        """Create a job from a dataset folder, stream its images one by one, start it.
+    def submit_folder(self, folder: Path | Dataset, **params: Any) -> str:
+        """Create a job from a dataset folder (or an opened :class:`Dataset`, e.g. a selection of its
+        images), stream its images one by one, start it.
 
         Only one decoded image is in memory at a time (NPY stacks are memory-mapped).
         """
-        ds = load_folder(folder)
+        ds = folder if isinstance(folder, Dataset) else load_folder(folder)
         meta: dict[str, Any] = {
             "k": ds.k,
             "height": ds.height,

@@ -311,10 +311,15 @@ def load_folder(folder: Path | str) -> Dataset:
         return _npy(folder)
     if (folder.parent / "lights.txt").exists() and (folder.parent / f"{folder.name}.txt").exists():
         return _uw(folder)
+    from storage.folders import detect  # TIFF stacks and plain folders (storage/folders.py)
+
+    ds = detect(folder)
+    if ds is not None:
+        return ds
     raise DatasetError(
         f"{folder} is not a recognised dataset: expected filenames.txt + light_directions.txt (DiLiGenT), "
-        f"images.npy + lights.txt (NPY stack), or a UW psm object folder with ../lights.txt and "
-        f"../{folder.name}.txt"
+        f"images.npy + lights.txt (NPY stack), a UW psm object folder with ../lights.txt and "
+        f"../{folder.name}.txt, or images (or a multi-page TIFF) with light_directions.txt or lights.txt"
     )
 
 

@@ -90,8 +90,9 @@ def _break(kind: str, root: Path) -> Path:
         np.savetxt(folder / "light_directions.txt", 3 * synthetic.lights_uniform(4))
     elif kind == "not-numbers":
         (folder / "light_directions.txt").write_text("a b c\n" * 4)
-    elif kind == "no-dataset":
+    elif kind == "no-dataset":  # images but no listing and no lights file (with one it is a plain folder)
         (folder / "filenames.txt").unlink()
+        (folder / "light_directions.txt").unlink()
     elif kind == "name-with-dotdot":
         (folder / "filenames.txt").write_text("001.png\n002.png\n../003.png\n004.png\n")
     elif kind == "absolute-name":
