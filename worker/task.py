@@ -8,15 +8,18 @@ and changes nothing. HiGHS objects are built inside the task (not picklable).
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from numpy.typing import NDArray
 
 from storage.layout import JobStore
 from worker.errors import StoreError
 from worker.problem import make_thresholds
 from worker.solve import estimate_job_eps, solve_tile
+from worker.tiles import Tile
 
 
 @dataclass(frozen=True)
@@ -36,6 +39,18 @@ class TileOutcome:
 def run_tile(job_dir: str, tile_index: int, params_hash: str) -> TileOutcome:
     """Compute tile ``tile_index`` of the job at ``job_dir``; write outputs, then the done marker."""
     store = JobStore.open(Path(job_dir))
+    return compute_tile(store, tile_index, params_hash)
+
+
+def compute_tile(
+    store: JobStore,
+    tile_index: int,
+    params_hash: str,
+    read_images: Callable[[Tile], NDArray] | None = None,
+) -> TileOutcome:
+    """Compute one tile of ``store`` and write it: what every path runs (Dask task or in-process
+    thread), so their results are bit-identical. ``read_images`` gives the tile's raw images
+    ``(k, h, w[, C])`` from elsewhere (e.g. a stack held in memory); default: the store."""
     params = store.params
     if params.eps is None or params.digest() != params_hash:
         raise StoreError(f"job parameters changed since tile {tile_index} was scheduled; restart the job")
@@ -51,7 +66,7 @@ def run_tile(job_dir: str, tile_index: int, params_hash: str) -> TileOutcome:
         store.write_empty_tile(t, token)
         store.log_run(tile_index, "done")
         return TileOutcome(tile_index, "done", pixels=mask.size, seconds=time.perf_counter() - t0)
-    raw = store.read_tile_images(t)
+    raw = (read_images or store.read_tile_images)(t)
     spec = store.spec
     th = make_thresholds(
         spec.k, params.eps, shadow=params.shadow, saturation=params.saturation, box_factor=params.box_factor
