@@ -98,11 +98,16 @@ def compute_tile(
 
 
 def estimate_store_eps(job_dir: str) -> float:
-    """eps="auto": estimate from the same tiles and pixels the in-process path uses."""
-    store = JobStore.open(Path(job_dir), mode="r")
+    """eps="auto" as a Dask task (see :func:`estimate_eps_of`)."""
+    return estimate_eps_of(JobStore.open(Path(job_dir), mode="r"))
+
+
+def estimate_eps_of(store: JobStore, read_images: Callable[[Tile], NDArray] | None = None) -> float:
+    """eps="auto": estimate from the same tiles and pixels on every path (``read_images``
+    as for :func:`compute_tile`)."""
     spec = store.spec
     return estimate_job_eps(
-        lambda t: store.read_tile(t)[0],
+        read_images or store.read_tile_images,
         spec.lights,
         store.observation_model,
         store.read_mask(),
