@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 from typing import Any
@@ -68,11 +67,11 @@ def _params(args: argparse.Namespace) -> dict[str, Any]:
     return {"eps": args.eps, "solver": args.solver, "tile": args.tile}
 
 
-def _progress(rec: Any) -> None:
-    from service.local import format_progress
+def _progress() -> Any:
+    """A fresh progress display (tqdm on a terminal, plain lines otherwise) for one run."""
+    from service.cliverbs import Progress
 
-    end = "\n" if rec.state.value in ("done", "failed", "cancelled") else ""
-    print("\r" + format_progress(rec), end=end, file=sys.stderr, flush=True)
+    return Progress().record
 
 
 def _dataset(args: argparse.Namespace) -> Any:
@@ -105,7 +104,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         print(note, file=sys.stderr)
     scheduler = args.scheduler if args.scheduler is not None else settings.scheduler
     rec = run_store(
-        store.path, scheduler=scheduler, workers=args.workers or settings.workers, on_progress=_progress
+        store.path, scheduler=scheduler, workers=args.workers or settings.workers, on_progress=_progress()
     )
     if rec.state.value != "done":
         print(f"maxfs: job {rec.state.value}: {rec.error or ''}".rstrip(": "), file=sys.stderr)
@@ -199,7 +198,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     store, note = ingest(load_folder(folder), out / "result.zarr", JobParams.build(eps=1.0, tile=args.tile))
     if note:
         print(note, file=sys.stderr)
-    rec = run_store(store.path, workers=args.workers or Settings().workers, on_progress=_progress)
+    rec = run_store(store.path, workers=args.workers or Settings().workers, on_progress=_progress())
     if rec.state.value != "done":
         print(f"maxfs: demo job {rec.state.value}: {rec.error}", file=sys.stderr)
         return 1
@@ -278,17 +277,20 @@ def cmd_token(args: argparse.Namespace) -> int:
 
 
 def cmd_submit(args: argparse.Namespace) -> int:
+    from service.cliverbs import wait_and_report
+
     with _client(args) as c:
-        print(c.submit_folder(_dataset(args), **_params(args)))
+        job_id = c.submit_folder(_dataset(args), **_params(args))
+        print(job_id, flush=True)
+        if args.wait:
+            return wait_and_report(c, job_id, as_json=False)
     return 0
 
 
 def cmd_status(args: argparse.Namespace) -> int:
-    with _client(args) as c:
-        st = c.status(args.job_id)
-    p = st["progress"]
-    print(json.dumps({k: st[k] for k in ("id", "state", "error", "eps")} | {"progress": p}, indent=1))
-    return 0
+    from service.cliverbs import cmd_status as status
+
+    return status(args)
 
 
 def cmd_fetch(args: argparse.Namespace) -> int:
@@ -310,8 +312,32 @@ def cmd_cancel(args: argparse.Namespace) -> int:
     return 0
 
 
+def _job_verbs(sub: Any) -> None:
+    """``jobs``, ``wait ID``, ``start ID`` (service/cliverbs.py)."""
+    from service import cliverbs
+
+    p = sub.add_parser("jobs", help="list your jobs on a server")
+    p.add_argument("--json", action="store_true")
+    _server_args(p)
+    p.set_defaults(fn=cliverbs.cmd_jobs)
+    p = sub.add_parser("wait", help="wait for a job to finish, showing progress (exit 1 unless done)")
+    p.add_argument("job_id")
+    p.add_argument("--json", action="store_true", help="print the final status as JSON")
+    _server_args(p)
+    p.set_defaults(fn=cliverbs.cmd_wait)
+    p = sub.add_parser("start", help="start a job, or resume a cancelled or failed one")
+    p.add_argument("job_id")
+    p.add_argument("--wait", action="store_true", help="then wait for it to finish")
+    p.add_argument("--json", action="store_true")
+    _server_args(p)
+    p.set_defaults(fn=cliverbs.cmd_start)
+
+
 def parser() -> argparse.ArgumentParser:
+    from service.cliverbs import version
+
     ap = argparse.ArgumentParser(prog="maxfs", description="Robust photometric stereo (exact Max-FS).")
+    ap.add_argument("--version", action="version", version=f"maxfs {version()}")
     sub = ap.add_subparsers(dest="command", required=True)
     p = sub.add_parser("run", help="run a dataset folder on this machine")
     p.add_argument("folder")
@@ -377,11 +403,15 @@ def parser() -> argparse.ArgumentParser:
         p.add_argument("job_id")
         _server_args(p)
         p.set_defaults(fn=fn)
+        if name == "status":
+            p.add_argument("--json", action="store_true", help="the server's full status as JSON")
+    _job_verbs(sub)
     p = sub.add_parser("submit", help="send a dataset folder to a server; prints the job id")
     p.add_argument("folder")
     _server_args(p)
     _solver_args(p)
     _images_arg(p)
+    p.add_argument("--wait", action="store_true", help="wait for the job to finish, showing progress")
     p.set_defaults(fn=cmd_submit)
     p = sub.add_parser("fetch", help="download a job's results as a Zarr folder")
     p.add_argument("job_id")
