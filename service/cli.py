@@ -37,6 +37,11 @@ def _solver_args(p: argparse.ArgumentParser) -> None:
         default="auto",
         help="tile edge in pixels, or auto (from k and MAXFS_TASK_MEMORY)",
     )
+    p.add_argument("--shadow", type=float, default=None, help="values <= this are shadows (default: eps)")
+    p.add_argument("--saturation", type=float, default=None, help="float input: values >= this are saturated")
+    p.add_argument("--box-factor", type=float, default=None, help="box on n, x the brightest value (10)")
+    p.add_argument("--max-nodes", type=int, default=None, help="exact solver's node budget per pixel")
+    p.add_argument("--milp-time-limit", type=float, default=None, help="MILP seconds per pixel (30)")
 
 
 def _tile(value: str) -> int | str:
@@ -64,7 +69,12 @@ def _server_args(p: argparse.ArgumentParser) -> None:
 
 
 def _params(args: argparse.Namespace) -> dict[str, Any]:
-    return {"eps": args.eps, "solver": args.solver, "tile": args.tile}
+    extra = {
+        k: getattr(args, k)
+        for k in ("shadow", "saturation", "box_factor", "max_nodes", "milp_time_limit")
+        if getattr(args, k, None) is not None
+    }
+    return {"eps": args.eps, "solver": args.solver, "tile": args.tile} | extra
 
 
 def _progress() -> Any:
@@ -89,23 +99,36 @@ def _dataset(args: argparse.Namespace) -> Any:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    from service.local import ingest, run_store
-    from storage.layout import JobSpec
-    from storage.params import JobParams
+    from service.timings import Timings
+
+    tm = Timings()
+    with tm.phase("imports"):
+        from service.local import run_folder
+        from storage.layout import JobSpec
+        from storage.params import JobParams
 
     settings = Settings()
-    ds = _dataset(args)
+    with tm.phase("open the folder"):
+        ds = _dataset(args)
     spec = JobSpec(ds.k, ds.height, ds.width, ds.channels, ds.dtype, ds.lights, ds.intensities).validate()
     kw = _params(args)
     params = JobParams.build(**kw | {"tile": spec.resolve_tile(kw["tile"], settings.task_memory)})
     print(f"{ds.name}: {ds.k} images of {ds.height} x {ds.width} ({ds.layout}, {ds.dtype})", file=sys.stderr)
-    store, note = ingest(ds, Path(args.output), params, overwrite=args.overwrite)
-    if note:
-        print(note, file=sys.stderr)
     scheduler = args.scheduler if args.scheduler is not None else settings.scheduler
-    rec = run_store(
-        store.path, scheduler=scheduler, workers=args.workers or settings.workers, on_progress=_progress()
+    store, rec = run_folder(
+        ds,
+        Path(args.output),
+        params,
+        overwrite=args.overwrite,
+        scheduler=scheduler,
+        workers=args.workers or settings.workers,
+        in_process_bytes=settings.in_process_bytes,
+        on_note=lambda note: print(note, file=sys.stderr),
+        on_progress=_progress(),
+        timings=tm,
     )
+    if args.timings:
+        print(tm.table(), file=sys.stderr)
     if rec.state.value != "done":
         print(f"maxfs: job {rec.state.value}: {rec.error or ''}".rstrip(": "), file=sys.stderr)
         return 1
@@ -183,7 +206,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
 def cmd_demo(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from service.local import ingest, run_store
+    from service.local import run_folder
     from storage.datasets import load_folder, write_npy_folder
     from storage.layout import JobStore
     from storage.params import JobParams
@@ -195,10 +218,14 @@ def cmd_demo(args: argparse.Namespace) -> int:
     print(
         f"demo: synthetic cast-shadow scene, {args.k} images of {args.size}^2, in {folder}", file=sys.stderr
     )
-    store, note = ingest(load_folder(folder), out / "result.zarr", JobParams.build(eps=1.0, tile=args.tile))
-    if note:
-        print(note, file=sys.stderr)
-    rec = run_store(store.path, workers=args.workers or Settings().workers, on_progress=_progress())
+    store, rec = run_folder(
+        load_folder(folder),
+        out / "result.zarr",
+        JobParams.build(eps=1.0, tile=args.tile),
+        workers=args.workers or Settings().workers,
+        on_note=lambda note: print(note, file=sys.stderr),
+        on_progress=_progress(),
+    )
     if rec.state.value != "done":
         print(f"maxfs: demo job {rec.state.value}: {rec.error}", file=sys.stderr)
         return 1
@@ -350,6 +377,7 @@ def parser() -> argparse.ArgumentParser:
         action="store_true",
         help="replace results in OUTPUT made from other inputs (otherwise refused)",
     )
+    p.add_argument("--timings", action="store_true", help="print the time spent in each phase")
     p.add_argument(
         "--gt",
         default=None,

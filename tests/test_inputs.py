@@ -93,8 +93,9 @@ def test_cli_run_with_images_on_a_tiff_stack(tmp_path: Path) -> None:
     tifffile.imwrite(data / "images.tif", images)
     np.savetxt(data / "light_directions.txt", lights)
     out = tmp_path / "out.zarr"
+    opts = ["--shadow", "2", "--max-nodes", "5000", "--milp-time-limit", "5"]
     r = subprocess.run(
-        [MAXFS, "run", str(data), "-o", str(out), "--images", "1-6,9", "--workers", "1", "--eps", "1"],
+        [MAXFS, "run", str(data), "-o", str(out), "--images", "1-6,9", "--workers", "1", "--eps", "1", *opts],
         capture_output=True,
         text=True,
         timeout=180,
@@ -103,4 +104,6 @@ def test_cli_run_with_images_on_a_tiff_stack(tmp_path: Path) -> None:
     assert "7 images of 20 x 20 (tiff-stack, images 7 of 10" in r.stderr
     store = JobStore.open(out, mode="r")
     assert store.spec.k == 7
+    p = store.params
+    assert (p.shadow, p.max_nodes, p.milp_time_limit) == (2.0, 5000, 5.0)
     np.testing.assert_array_equal(np.asarray(store.group["images"][6]), images[8])
