@@ -11,14 +11,20 @@ import asyncio
 import dataclasses
 import json
 import shutil
+import threading
 import time
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
 from distributed import Client, LocalCluster
+from numpy.typing import NDArray
 
+from service.inprocess import run_in_process
 from service.orchestrator import ProgressFn, run_job, warm_workers
 from service.previews import PREVIEW_INPUTS, PREVIEWS, render
+from service.timings import Timings
 from storage.datasets import Dataset
 from storage.imageio import encode_png
 from storage.layout import JobSpec, JobStore, array_digest, lights_digest
@@ -27,8 +33,12 @@ from storage.records import JobRecord, JobState, load_record, save_record
 from worker.errors import ConflictError, InvalidInputError, StoreError
 
 
-def ingest(ds: Dataset, out: Path, params: JobParams, *, overwrite: bool = False) -> tuple[JobStore, str]:
-    """Create or reopen the output store for ``ds``; copy images not yet stored.
+def ingest(
+    ds: Dataset, out: Path, params: JobParams, *, overwrite: bool = False, copy_images: bool = True
+) -> tuple[JobStore, str]:
+    """Create or reopen the output store for ``ds``; copy images not yet stored (into a
+    new store only if ``copy_images``: :func:`run_folder` may keep them in memory and
+    write them in the background instead).
 
     A store that already holds *other* inputs (images, mask, lights or intensities,
     compared by content digest) is refused unless ``overwrite``, which removes it and
@@ -61,21 +71,19 @@ def ingest(ds: Dataset, out: Path, params: JobParams, *, overwrite: bool = False
                 f"resuming {out}: {int(store.done_grid().sum())} of {len(store.tiles())} tiles already done"
             )
         try:
-            rec = load_record(out)
+            load_record(out)
         except StoreError:
-            rec = JobRecord(id=out.name)
+            save_record(out, JobRecord(id=out.name))
     else:
         store = JobStore.create(out, spec, params)
-        rec = JobRecord(id=out.name)
-        for i in range(ds.k):
-            store.write_image(i, ds.read(i))
+        save_record(out, JobRecord(id=out.name))
         if ds.mask is not None:
             store.write_mask(ds.mask)
+        for i in range(ds.k) if copy_images else ():
+            store.write_image(i, ds.read(i))
     store.source_fingerprint = ds.fingerprint()
     if not store.read_mask().any():
         raise InvalidInputError(f"the mask of {ds.name} selects no pixel; nothing to solve")
-    rec.state = JobState.QUEUED
-    save_record(out, rec)
     return store, note
 
 
@@ -149,14 +157,95 @@ async def _run(out: Path, scheduler: str, workers: int, on_progress: ProgressFn 
 def run_store(
     out: Path, *, scheduler: str = "", workers: int = 2, on_progress: ProgressFn | None = None
 ) -> JobRecord:
-    """Run every unfinished tile of the store at ``out``; write PNG previews when done."""
+    """Run every unfinished tile of the store at ``out`` on a Dask cluster (the embedded
+    one, or ``scheduler``); write previews and derived results when done."""
     rec = asyncio.run(_run(Path(out), scheduler, workers, on_progress))
     if rec.state is JobState.DONE:
-        write_previews(JobStore.open(Path(out), mode="r"))
-        from service.research import finish_results
-
-        finish_results(out)
+        finish(Path(out))
     return rec
+
+
+def finish(out: Path, timings: Timings | None = None) -> None:
+    """What a finished job gets besides its arrays: PNG previews, depth (see :mod:`service.research`)."""
+    from service.research import finish_results
+
+    tm = timings or Timings()
+    with tm.phase("previews"):
+        write_previews(JobStore.open(out, mode="r"))
+    with tm.phase("depth and derived results"):
+        finish_results(out)
+
+
+def run_folder(
+    ds: Dataset,
+    out: Path,
+    params: JobParams,
+    *,
+    overwrite: bool = False,
+    scheduler: str = "",
+    workers: int = 2,
+    in_process_bytes: int = 2 << 30,
+    on_note: Callable[[str], None] | None = None,
+    on_progress: ProgressFn | None = None,
+    timings: Timings | None = None,
+) -> tuple[JobStore, JobRecord]:
+    """``maxfs run``: ingest ``ds`` into ``out`` (or resume it) and solve every tile.
+
+    With no ``scheduler`` and a stack of at most ``in_process_bytes``, tiles run on
+    ``workers`` threads in this process (:mod:`service.inprocess`) with the images held in
+    memory and written to the store in the background; otherwise on a Dask cluster, the
+    embedded one or ``scheduler``. A finished job is not run again: it costs a look at
+    its done markers. Results are bit-identical either way.
+    """
+    out = Path(out)
+    tm = timings or Timings()
+    stack_bytes = ds.k * ds.height * ds.width * (ds.channels or 1) * np.dtype(ds.dtype).itemsize
+    in_process = not scheduler and stack_bytes <= in_process_bytes
+    with tm.phase("open or create the store"):
+        store, note = ingest(ds, out, params, overwrite=overwrite, copy_images=not in_process)
+    if note and on_note:
+        on_note(note)
+    if store.done_grid().all() and (out / "previews").is_dir():
+        return store, load_record(out)  # finished earlier with these inputs and parameters
+    images, pending, stop = None, None, threading.Event()
+    writer = ThreadPoolExecutor(1, thread_name_prefix="maxfs-store-write")
+    try:
+        if not store.uploaded().all():  # a new store whose images stay in memory
+            with tm.phase("read images"):
+                images = np.empty((ds.k, *store.spec.image_shape), dtype=ds.dtype)
+                for i in range(ds.k):
+                    images[i] = ds.read(i)
+            pending = writer.submit(_write_images, store, images, stop, tm)
+        if in_process:
+            rec = run_in_process(
+                out,
+                threads=workers,
+                images=images,
+                pending=pending,
+                on_progress=on_progress,
+                timings=tm.add,
+            )
+        else:
+            with tm.phase("cluster run (start, tiles, stop)"):
+                rec = asyncio.run(_run(out, scheduler, workers, on_progress))
+    except BaseException:
+        stop.set()
+        raise
+    finally:
+        writer.shutdown(wait=True)
+    if rec.state is JobState.DONE:
+        finish(out, tm)
+    return store, rec
+
+
+def _write_images(store: JobStore, images: NDArray, stop: threading.Event, tm: Timings) -> None:
+    """Write a stack held in memory into the store, image by image (background thread)."""
+    t0 = time.perf_counter()
+    for i in range(images.shape[0]):
+        if stop.is_set():
+            return
+        store.write_image(i, images[i])
+    tm.add("store images (background)", time.perf_counter() - t0)
 
 
 def write_previews(store: JobStore) -> list[Path]:

@@ -18,6 +18,7 @@ from pathlib import Path
 from distributed import Client, as_completed
 
 from storage.layout import JobStore
+from storage.params import JobParams
 from storage.records import JobRecord, JobState, load_record, save_record
 from worker.errors import JobCancelledError
 from worker.problem import check_options
@@ -31,7 +32,33 @@ async def warm_workers(client: Client) -> None:
     await client.run(warm_up)
 
 
-def _count_finished(rec: JobRecord, store: JobStore) -> None:
+class RunCounter:
+    """Adds finished tiles to a record and keeps the pixel rate of this run."""
+
+    def __init__(self, rec: JobRecord) -> None:
+        self.rec, self.t0, self.pixels = rec, time.monotonic(), 0
+
+    def add(self, out: TileOutcome) -> None:
+        rec = self.rec
+        rec.tiles_done += 1
+        rec.pixels_done += out.active
+        rec.solved_pixels += out.solved
+        rec.certified_pixels += out.certified
+        self.pixels += out.active
+        rec.pixel_rate = self.pixels / max(time.monotonic() - self.t0, 1e-9)
+
+
+def resolve_eps(store: JobStore, eps: float) -> JobParams:
+    """Record an estimated eps in the store's parameters, after checking it fits the others
+    (e.g. a saturation given by hand)."""
+    params = store.params
+    check_options(eps=eps, shadow=params.shadow, saturation=params.saturation)
+    params = params.with_eps(eps)
+    store.set_params(params)
+    return params
+
+
+def count_finished(rec: JobRecord, store: JobStore) -> None:
     """Set the record's counts from what the store's finished tiles hold."""
     c = store.progress()
     rec.tiles_done, rec.tiles_total = c.tiles_done, c.tiles_total
@@ -72,14 +99,11 @@ async def run_job(
         if params.eps is None:
             key = f"maxfs-eps-{rec.id}-{uuid.uuid4().hex[:8]}"
             eps = await client.submit(estimate_store_eps, str(job_dir), key=key, pure=False, retries=retries)
-            params = params.with_eps(eps)
-            # the estimate must fit the other thresholds (e.g. a saturation given by hand)
-            check_options(eps=eps, shadow=params.shadow, saturation=params.saturation)
-            store.set_params(params)
+            params = resolve_eps(store, eps)
         rec.eps = params.eps
         tiles = store.tiles()
         done = store.done_grid().ravel()
-        _count_finished(rec, store)
+        count_finished(rec, store)
         rec.state, rec.started_at, rec.pixel_rate = JobState.RUNNING, time.time(), None
         save()
         digest, nonce = params.digest(), uuid.uuid4().hex[:8]
@@ -91,7 +115,7 @@ async def run_job(
                     run_tile, str(job_dir), t.index, digest, key=key, pure=False, retries=retries
                 )
                 index_of[key] = t.index
-        t0, px_run, last = time.monotonic(), 0, 0.0
+        counter, last = RunCounter(rec), 0.0
         cancelled = False
         async for fut in as_completed(list(futures.values())):
             futures.pop(fut.key, None)
@@ -112,12 +136,7 @@ async def run_job(
                 cancelled = True
                 continue
             if out.status == "done":
-                rec.tiles_done += 1
-                rec.pixels_done += out.active
-                rec.solved_pixels += out.solved
-                rec.certified_pixels += out.certified
-                px_run += out.active
-                rec.pixel_rate = px_run / max(time.monotonic() - t0, 1e-9)
+                counter.add(out)
             now = time.monotonic()
             if now - last >= progress_interval:
                 save()
@@ -128,7 +147,7 @@ async def run_job(
             raise RuntimeError(
                 "some tiles finished without their done marker; start the job again to finish it"
             )
-        _count_finished(rec, store)
+        count_finished(rec, store)
         rec.state, rec.finished_at = JobState.DONE, time.time()
         save()
         return rec

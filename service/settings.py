@@ -48,6 +48,10 @@ class Settings(BaseSettings):
     min_free_bytes: int = 1 << 30
     #: Memory one tile task may use for its arrays; sets the automatic tile size.
     task_memory: int = DEFAULT_TASK_MEMORY
+    #: ``maxfs run`` without a scheduler solves in its own process, on ``workers`` threads
+    #: with the stack in memory, when the stack is at most this many bytes; larger stacks
+    #: go to the embedded Dask cluster, which reads tiles from the store.
+    in_process_bytes: int = 2 << 30
     #: Seconds between job-record saves while a job runs.
     progress_interval: float = 1.0
     #: Retries of a failed tile task before the job fails.

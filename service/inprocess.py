@@ -1,0 +1,120 @@
+"""Running a job's tiles in this process, on threads: what ``maxfs run`` does with the
+embedded default when the stack fits in memory.
+
+The exact kernel releases the GIL, so threads use every core without starting a
+cluster or warming worker processes, and the images need not go through Zarr before
+the first tile: they stay in memory while a background thread writes them to the
+store (for resume and the input identity). Every tile goes through
+:func:`worker.task.compute_tile`, the function the Dask tasks run, so results are
+bit-identical to the distributed path. Tiles start in order of their masked-pixel
+count, largest first, so the object's few heavy tiles do not finish last.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, wait
+from pathlib import Path
+
+from numpy.typing import NDArray
+
+from service.orchestrator import ProgressFn, RunCounter, count_finished, resolve_eps
+from storage.layout import JobStore
+from storage.records import JobRecord, JobState, load_record, save_record
+from worker.task import TileOutcome, compute_tile, estimate_eps_of
+from worker.tiles import Tile
+
+
+def tile_order(store: JobStore, todo: list[Tile]) -> list[Tile]:
+    """``todo`` by masked pixels, most first (ties in raster order)."""
+    mask = store.read_mask()
+    count = {t.index: int(mask[t.y0 : t.y1, t.x0 : t.x1].sum()) for t in todo}
+    return sorted(todo, key=lambda t: (-count[t.index], t.index))
+
+
+def run_in_process(
+    job_dir: Path,
+    *,
+    threads: int,
+    images: NDArray | None = None,
+    pending: Future | None = None,
+    on_progress: ProgressFn | None = None,
+    progress_interval: float = 1.0,
+    timings: Callable[[str, float], None] | None = None,
+) -> JobRecord:
+    """Run (or resume) every unfinished tile of the job at ``job_dir`` on ``threads`` threads.
+
+    ``images``: the whole stack ``(k, H, W[, C])`` in memory, read instead of the store;
+    ``pending``: the background write of those images into the store, awaited before the
+    job is recorded done. Ends ``done`` or ``failed`` (with a reason) like
+    :func:`service.orchestrator.run_job`; a KeyboardInterrupt leaves the job resumable.
+    """
+    job_dir = Path(job_dir)
+    store = JobStore.open(job_dir)
+    rec = load_record(job_dir)
+    report = on_progress or (lambda r: None)
+    note = timings or (lambda name, s: None)
+
+    def save() -> None:
+        save_record(job_dir, rec)
+        report(rec)
+
+    def read(t: Tile) -> NDArray:
+        return images[:, t.y0 : t.y1, t.x0 : t.x1]
+
+    reader = None if images is None else read
+    store.clear_cancel()
+    rec.state, rec.error, rec.finished_at = JobState.QUEUED, None, None
+    save()
+    try:
+        params = store.params
+        if params.eps is None:
+            t0 = time.perf_counter()
+            params = resolve_eps(store, estimate_eps_of(store, reader))
+            note("eps estimate", time.perf_counter() - t0)
+        rec.eps = params.eps
+        count_finished(rec, store)
+        rec.state, rec.started_at, rec.pixel_rate = JobState.RUNNING, time.time(), None
+        save()
+        done = store.done_grid().ravel()
+        todo = tile_order(store, [t for t in store.tiles() if not done[t.index]])
+        digest, counter, last = params.digest(), RunCounter(rec), 0.0
+        t0 = time.perf_counter()
+        with ThreadPoolExecutor(max(1, threads), thread_name_prefix="maxfs-tile") as pool:
+            futures = {pool.submit(compute_tile, store, t.index, digest, reader): t for t in todo}
+            try:
+                while futures:
+                    finished, _ = wait(futures, return_when=FIRST_COMPLETED)
+                    for fut in finished:
+                        t = futures.pop(fut)
+                        try:
+                            out: TileOutcome = fut.result()
+                        except Exception as e:
+                            raise RuntimeError(f"tile {t.index} failed: {type(e).__name__}: {e}") from e
+                        if out.status == "done":
+                            counter.add(out)
+                    if time.monotonic() - last >= progress_interval:
+                        save()
+                        last = time.monotonic()
+            except BaseException:
+                for fut in futures:
+                    fut.cancel()
+                raise
+        note("tiles", time.perf_counter() - t0)
+        if pending is not None:
+            t0 = time.perf_counter()
+            pending.result()  # the stack must be in the store before the job counts as done
+            note("wait for the image store write", time.perf_counter() - t0)
+        count_finished(rec, store)
+        rec.state, rec.finished_at = JobState.DONE, time.time()
+        save()
+        return rec
+    except KeyboardInterrupt:
+        save()  # still active: the same command resumes from the finished tiles
+        raise
+    except Exception as e:
+        rec.state, rec.error, rec.finished_at = JobState.FAILED, str(e), time.time()
+        save()
+        return rec
+
