@@ -1,22 +1,43 @@
 """Exact maximum feasible subsystem by branch and bound over boxes of n-space.
 
 The Max-FS problem at one pixel is the maximum depth of an arrangement of k slabs
-``a_i <= L_i . n <= b_i`` in 3-D, restricted to the box ``|n_j| <= U``.
+``lo_i <= L_i . n <= hi_i`` in 3-D, restricted to the box ``|n_j| <= U``.
 
 Each box in the search carries three numbers: ``f`` slabs contain it wholly,
 ``p`` slabs cross it (their indices are kept), the rest miss it. ``f + p`` bounds
-the depth of any point in the box from above; the box centre, which lies in the
-``f`` full slabs and in some of the ``p`` crossing ones, bounds it from below.
-Children only re-test their parent's crossing slabs, so deep boxes are cheap.
-A box with one crossing slab is solved in closed form (depth ``f + 1`` is
-reached on that slab's side of the box); a box shrunk below ``hmin`` is solved by
-enumerating every vertex of its crossing planes and faces, which makes the search
-finite and exact even in degenerate arrangements.
+the depth of any point in the box from above. Children only re-test their
+parent's crossing slabs, so deep boxes are cheap.
+
+Most boxes are only a few slabs from being pruned (the seeds are good), and
+there a sharper bound pays: the **1-D depth test**. Project every crossing slab,
+intersected with the box, onto one axis; a point of the box lies in at most as
+many slabs as its coordinate lies in projected intervals. With ``g = f + p - best
+- 1`` slabs allowed to miss, the offsets along the axis where at most ``g``
+intervals miss form a set whose hull only needs the ``g + 1`` largest interval
+starts and ``g + 1`` smallest ends (no full sort). An empty set prunes the box;
+otherwise the box **shrinks** to the hull, first in z (the lights' common
+direction, where slabs are thinnest), then in x and y, and its slabs are
+re-classified from fresh dot products.
+
+A box with at most three crossing slabs is solved exactly by enumerating the
+vertices of its crossing planes and faces, as is a box shrunk below ``hmin``,
+which keeps the search finite and exact in degenerate arrangements.
+
+**Every claimed incumbent is recounted from scratch** (a fresh dot product with
+every usable light) before it is accepted. The cached, incrementally updated
+``L . c`` of a box centre may differ from a fresh one in the last bits; a centre
+exactly on a slab face would then claim an inlier it does not hold, and pruning
+against that inflated count would discard the true optimum.
 
 The search is depth-first, better child first, seeded with good incumbents (the
-neighbouring pixel's solution and trimmed least squares), so most of the work is
-the proof that no deeper point exists. ``max_nodes`` bounds the work per pixel;
-a pixel that hits it is reported as not certified.
+previous pixel's and, when given, the pixel above's solution, trimmed least
+squares, and alternating projections onto the slabs when least squares misses
+only a few usable images); it stops at once when an incumbent holds every usable
+image. ``max_nodes`` bounds the work per pixel; a pixel that hits it is reported
+as not certified.
+
+The count is exact; which of several optimal points (and so which inlier set)
+is returned among ties may differ from an earlier version of this kernel.
 """
 
 from __future__ import annotations
@@ -28,16 +49,23 @@ from numpy.typing import NDArray
 from worker.problem import REL_TOL
 
 _STACK = 256  # DFS depth bound; a box this deep is far below ``hmin`` already
-_HMIN_REL = 1e-4  # enumerate the vertices of boxes narrower than this times eps
+_HMIN_REL = 1e-4  # enumerate the vertices of boxes narrower than this times the widest half-width
+_SHRINK_GAP = 24  # run the 1-D depth test in boxes at most this many slabs from being pruned
+_SHRINK_KEEP = 0.9  # apply a shrink only when it cuts the box's width along the axis by 10 % or more
+_ENUM_P = 3  # enumerate vertices in boxes with at most this many crossing slabs
+_AP_GAP = 3  # alternating projections when the incumbent misses at most this many usable images
+_AP_SWEEPS = 12
+_SIGMA_REL = 1e-12  # rounding slack of box-slab tests, relative to U (far below REL_TOL)
 
 
 @njit(cache=True, nogil=True)
-def _count(L, a, b, idx, m, x, y, z, tol):  # pragma: no cover - numba
+def _count(L, lo, hi, idx, m, x, y, z):  # pragma: no cover - numba
+    """Slabs (widened bounds ``lo``, ``hi``) holding the point, from fresh dot products."""
     c = 0
     for q in range(m):
         j = idx[q]
         v = L[j, 0] * x + L[j, 1] * y + L[j, 2] * z
-        if v >= a[j] - tol and v <= b[j] + tol:
+        if v >= lo[j] and v <= hi[j]:
             c += 1
     return c
 
@@ -78,13 +106,29 @@ def _lsq(L, inten, sel, k, out):  # pragma: no cover - numba
 
 
 @njit(cache=True, nogil=True)
-def _enum_leaf(L, a, b, lst, p, c, h, f, tol, best, bp):  # pragma: no cover - numba
-    """Exact depth inside a tiny box: try every vertex of its planes."""
+def _claim(L, lo, hi, idx, m, x, y, z, best, bp):  # pragma: no cover - numba
+    """Accept ``(x, y, z)`` as the incumbent if its fresh count beats ``best``."""
+    cnt = _count(L, lo, hi, idx, m, x, y, z)
+    if cnt > best:
+        bp[0] = x
+        bp[1] = y
+        bp[2] = z
+        return cnt
+    return best
+
+
+@njit(cache=True, nogil=True)
+def _enum_leaf(L, a, b, lo, hi, tol, idx, m, row, p, c, h, f, best, bp):  # pragma: no cover - numba
+    """Exact depth inside a box: try every vertex of its crossing planes and faces.
+
+    ``row`` holds the ``p`` crossing slabs; a vertex whose count there (plus the
+    ``f`` full slabs) beats ``best`` is recounted over all ``m`` before it is taken.
+    """
     npl = 2 * p + 6
     nrm = np.zeros((npl, 3))
     off = np.empty(npl)
     for q in range(p):
-        j = lst[q]
+        j = row[q]
         for d in range(3):
             nrm[2 * q, d] = L[j, d]
             nrm[2 * q + 1, d] = L[j, d]
@@ -122,23 +166,114 @@ def _enum_leaf(L, a, b, lst, p, c, h, f, tol, best, bp):  # pragma: no cover - n
                     or abs(vz - c[2]) > h[2] + slack
                 ):
                     continue
-                cnt = f + _count(L, a, b, lst, p, vx, vy, vz, tol)
-                if cnt > best:
-                    best = cnt
-                    bp[0] = vx
-                    bp[1] = vy
-                    bp[2] = vz
+                if f + _count(L, lo, hi, row, p, vx, vy, vz) > best:
+                    best = _claim(L, lo, hi, idx, m, vx, vy, vz, best, bp)
     return best
+
+
+@njit(cache=True, nogil=True)
+def _axis_hull(L, absL, invL, los, his, prow, pvrow, prrow, p, d, hd, g, bs, be):  # pragma: no cover - numba
+    """Hull ``[smin, smax]`` of the offsets ``s`` in ``[-hd, hd]`` along axis ``d``
+    where at most ``g`` of the box's ``p`` crossing slabs miss (``g < p``).
+
+    Returns (nonempty, smin, smax). Slab ``j`` over the box, with the coordinate
+    along ``d`` fixed at ``c_d + s``, reaches ``v + L_jd s +- r`` with ``r`` the
+    half-range over the other two axes, so it can hold a point there only for
+    ``s`` in ``[S_j, E_j]``. ``cnt(s) = #{S_j > s} + #{E_j < s}`` slabs miss
+    every point at ``s``; the leftmost ``s`` with ``cnt(s) <= g`` is one of the
+    ``g + 1`` largest starts and the rightmost one of the ``g + 1`` smallest ends.
+    """
+    n = g + 1
+    ns = 0
+    ne = 0
+    for q in range(p):
+        j = prow[q]
+        v = pvrow[q]
+        ro = max(prrow[q] - absL[j, d] * hd, 0.0)
+        iv = invL[j, d]
+        if iv != 0.0:  # sign-free: the interval is between the two scaled bounds
+            t0 = (los[j] - v - ro) * iv
+            t1 = (his[j] - v + ro) * iv
+            s0 = max(min(t0, t1), -hd)
+            s1 = min(max(t0, t1), hd)
+        else:  # L_jd = 0: no information along this axis
+            s0 = -hd
+            s1 = hd
+        # keep the n largest starts, descending
+        if ns < n:
+            i = ns
+            ns += 1
+        elif s0 > bs[n - 1]:
+            i = n - 1
+        else:
+            i = -1
+        if i >= 0:
+            while i > 0 and bs[i - 1] < s0:
+                bs[i] = bs[i - 1]
+                i -= 1
+            bs[i] = s0
+        # keep the n smallest ends, ascending
+        if ne < n:
+            i = ne
+            ne += 1
+        elif s1 < be[n - 1]:
+            i = n - 1
+        else:
+            i = -1
+        if i >= 0:
+            while i > 0 and be[i - 1] > s1:
+                be[i] = be[i - 1]
+                i -= 1
+            be[i] = s1
+    # leftmost: candidate starts in ascending order; "above" = starts strictly greater
+    smin = 0.0
+    found = False
+    jb = 0
+    for i in range(n - 1, -1, -1):
+        s = bs[i]
+        if i > 0 and bs[i - 1] == s:
+            continue
+        while jb < n and be[jb] < s:
+            jb += 1
+        if jb == n:
+            break
+        if i + jb <= g:
+            smin = s
+            found = True
+            break
+    if not found:
+        return False, 0.0, 0.0
+    smax = smin
+    ja = 0
+    for i in range(n - 1, -1, -1):
+        s = be[i]
+        if i > 0 and be[i - 1] == s:
+            continue
+        while ja < n and bs[ja] > s:
+            ja += 1
+        if ja == n:
+            break
+        if i + ja <= g:
+            smax = s
+            break
+    if smax < smin:
+        smax = smin
+    return True, smin, smax
 
 
 @njit(cache=True, nogil=True)
 def _bnb(
     L,
     absL,
-    lo,
-    hi,
+    invL,
     a,
     b,
+    lo,
+    hi,
+    los,
+    his,
+    lof,
+    hif,
     idx,
     m,
     U,
@@ -155,16 +290,17 @@ def _bnb(
     pool,
     pv,
     pr,
-    si,
-    sv,
-    sr,
+    bs,
+    be,
 ):  # pragma: no cover - numba
     """Depth-first branch and bound; returns (best, nodes, certified).
 
     Each stack entry owns a pool row holding its crossing slabs' indices and, per
     slab, ``L.c`` at the box centre and the half-range ``|L|.h``. A child updates
-    both by one term, so a slab test costs two adds and two compares.
-    ``lo``/``hi`` are the slab bounds widened by ``tol``.
+    both by one term. ``lo``/``hi`` are the slab bounds widened by the count
+    tolerance (a point holds slab ``j`` iff ``lo_j <= L_j.n <= hi_j``); ``los``/
+    ``his`` widen them by the rounding slack for "may touch", ``lof``/``hif``
+    narrow them for "contains": box tests err toward "crossing".
     """
     S = stf.shape[0]
     for s in range(S):
@@ -193,23 +329,74 @@ def _bnb(
         if nodes > max_nodes:
             return best, nodes, False
         row = strow[top]
-        for q in range(p):
-            si[q] = pool[row, q]
-            sv[q] = pv[row, q]
-            sr[q] = pr[row, q]
+        prow = pool[row]
+        pvrow = pv[row]
+        prrow = pr[row]
         for d in range(3):
             c[d] = stc[top, d]
             h[d] = sth[top, d]
-        if p == 1:
-            # one crossing slab: a point of the box inside it has depth f + 1
-            j = si[0]
-            v = sv[0]
-            rad = sr[0]
-            t = min(max(v, max(a[j], v - rad)), min(b[j], v + rad))
-            s = (t - v) / rad if rad > 0.0 else 0.0
-            best = f + 1
-            for d in range(3):
-                bp[d] = c[d] + s * np.sign(L[j, d]) * h[d]
+        if f <= best and f + p - best <= _SHRINK_GAP and p > _ENUM_P:
+            # 1-D depth tests: prune, or shrink the box to where it can still win
+            pruned = False
+            for t in range(3):
+                d = 2 if t == 0 else t - 1
+                g = f + p - best - 1
+                ok, smin, smax = _axis_hull(
+                    L, absL, invL, los, his, prow, pvrow, prrow, p, d, h[d], g, bs, be
+                )
+                if not ok:
+                    pruned = True
+                    break
+                if smax - smin > _SHRINK_KEEP * 2.0 * h[d]:
+                    if t == 0:  # z, where slabs are thinnest, did not shrink: x, y would not
+                        break
+                    continue
+                dc = 0.5 * (smin + smax)
+                hn = 0.5 * (smax - smin)
+                dh = hn - h[d]
+                c[d] = c[d] + dc
+                h[d] = hn
+                # re-classify the crossing slabs (the rounding slack covers the update's)
+                np_ = 0
+                cc = 0
+                for q in range(p):
+                    j = prow[q]
+                    v = pvrow[q] + L[j, d] * dc
+                    rad = prrow[q] + absL[j, d] * dh
+                    full = (v - rad >= lof[j]) & (v + rad <= hif[j])
+                    cross = (v + rad >= los[j]) & (v - rad <= his[j]) & (not full)
+                    f += full
+                    prow[np_] = j
+                    pvrow[np_] = v
+                    prrow[np_] = rad
+                    cc += cross & (v >= lo[j]) & (v <= hi[j])
+                    np_ += cross
+                p = np_
+                if f + cc > best:
+                    best = _claim(L, lo, hi, idx, m, c[0], c[1], c[2], best, bp)
+                if f + p <= best:
+                    pruned = True
+                    break
+                if f > best or p <= _ENUM_P:
+                    break
+            if pruned:
+                continue
+        if p <= _ENUM_P:
+            if p == 1:
+                # one crossing slab: a point of the box inside it has depth f + 1
+                j = prow[0]
+                v = pvrow[0]
+                rad = prrow[0]
+                t0 = min(max(v, max(a[j], v - rad)), min(b[j], v + rad))
+                s = (t0 - v) / rad if rad > 0.0 else 0.0
+                x = c[0] + s * np.sign(L[j, 0]) * h[0]
+                y = c[1] + s * np.sign(L[j, 1]) * h[1]
+                z = c[2] + s * np.sign(L[j, 2]) * h[2]
+                nb = _claim(L, lo, hi, idx, m, x, y, z, best, bp)
+                if nb > best:
+                    best = nb
+                    continue
+            best = _enum_leaf(L, a, b, lo, hi, tol, idx, m, prow, p, c, h, f, best, bp)
             continue
         ax = 0
         if h[1] > h[ax]:
@@ -217,45 +404,49 @@ def _bnb(
         if h[2] > h[ax]:
             ax = 2
         if h[ax] < hmin or top + 2 >= S:
-            best = _enum_leaf(L, a, b, si, p, c, h, f, tol, best, bp)
+            best = _enum_leaf(L, a, b, lo, hi, tol, idx, m, prow, p, c, h, f, best, bp)
             continue
         hh = 0.5 * h[ax]
-        r0 = strow[top]
         r1 = strow[top + 1]
+        q0 = pool[r1]
+        v1row = pv[r1]
+        r1row = pr[r1]
         f0 = f
         f1 = f
         p0 = 0
         p1 = 0
         c0 = 0
         c1 = 0
+        # branchless split; child 0 compacts into the parent's own row (p0 <= q)
         for q in range(p):
-            j = si[q]
+            j = prow[q]
             dv = L[j, ax] * hh
-            rad = sr[q] - absL[j, ax] * hh
+            rad = prrow[q] - absL[j, ax] * hh
+            vq = pvrow[q]
             lj = lo[j]
             hj = hi[j]
-            v = sv[q] - dv  # child 0: centre moved by -hh along ax
-            if v + rad >= lj and v - rad <= hj:
-                if v - rad >= lj and v + rad <= hj:
-                    f0 += 1
-                else:
-                    pool[r0, p0] = j
-                    pv[r0, p0] = v
-                    pr[r0, p0] = rad
-                    p0 += 1
-                    if v >= lj and v <= hj:
-                        c0 += 1
-            v = sv[q] + dv  # child 1
-            if v + rad >= lj and v - rad <= hj:
-                if v - rad >= lj and v + rad <= hj:
-                    f1 += 1
-                else:
-                    pool[r1, p1] = j
-                    pv[r1, p1] = v
-                    pr[r1, p1] = rad
-                    p1 += 1
-                    if v >= lj and v <= hj:
-                        c1 += 1
+            lsj = los[j]
+            hsj = his[j]
+            lfj = lof[j]
+            hfj = hif[j]
+            v = vq - dv  # child 0: centre moved by -hh along ax
+            full = (v - rad >= lfj) & (v + rad <= hfj)
+            cross = (v + rad >= lsj) & (v - rad <= hsj) & (not full)
+            f0 += full
+            prow[p0] = j
+            pvrow[p0] = v
+            prrow[p0] = rad
+            c0 += cross & (v >= lj) & (v <= hj)
+            p0 += cross
+            v = vq + dv  # child 1
+            full = (v - rad >= lfj) & (v + rad <= hfj)
+            cross = (v + rad >= lsj) & (v - rad <= hsj) & (not full)
+            f1 += full
+            q0[p1] = j
+            v1row[p1] = v
+            r1row[p1] = rad
+            c1 += cross & (v >= lj) & (v <= hj)
+            p1 += cross
         for side in range(2):
             slot = top + side
             for d in range(3):
@@ -268,13 +459,9 @@ def _bnb(
         stf[top + 1] = f1
         stp[top + 1] = p1
         if f0 + c0 > best:
-            best = f0 + c0
-            for d in range(3):
-                bp[d] = stc[top, d]
+            best = _claim(L, lo, hi, idx, m, stc[top, 0], stc[top, 1], stc[top, 2], best, bp)
         if f1 + c1 > best:
-            best = f1 + c1
-            for d in range(3):
-                bp[d] = stc[top + 1, d]
+            best = _claim(L, lo, hi, idx, m, stc[top + 1, 0], stc[top + 1, 1], stc[top + 1, 2], best, bp)
         # the child with the larger bound goes on top, to be explored first
         if f0 + p0 > f1 + p1:
             for d in range(3):
@@ -289,27 +476,54 @@ def _bnb(
             stp[top] = p1
             stp[top + 1] = p0
             strow[top] = r1
-            strow[top + 1] = r0
+            strow[top + 1] = row
         top += 2
     return best, nodes, True
 
 
 @njit(cache=True, nogil=True)
-def _try_point(L, a, b, idx, m, U, tol, x, y, z, best, bp):  # pragma: no cover - numba
+def _try_point(L, lo, hi, idx, m, U, x, y, z, best, bp):  # pragma: no cover - numba
     if abs(x) > U or abs(y) > U or abs(z) > U or not (x == x and y == y and z == z):
         return best
-    cnt = _count(L, a, b, idx, m, x, y, z, tol)
-    if cnt > best:
-        bp[0] = x
-        bp[1] = y
-        bp[2] = z
-        return cnt
+    return _claim(L, lo, hi, idx, m, x, y, z, best, bp)
+
+
+@njit(cache=True, nogil=True)
+def _project(L, a, b, idx, m, U, margin, n0, sweeps, lo, hi, best, bp):  # pragma: no cover - numba
+    """Alternating projections onto every usable slab (shrunk by ``margin``), from ``n0``.
+
+    Returns the incumbent after testing the point reached after each sweep.
+    """
+    x = n0[0]
+    y = n0[1]
+    z = n0[2]
+    for _ in range(sweeps):
+        moved = False
+        for q in range(m):
+            j = idx[q]
+            v = L[j, 0] * x + L[j, 1] * y + L[j, 2] * z
+            w = L[j, 0] * L[j, 0] + L[j, 1] * L[j, 1] + L[j, 2] * L[j, 2]
+            lim_lo = a[j] + margin[j]
+            lim_hi = b[j] - margin[j]
+            if v < lim_lo:
+                s = (lim_lo - v) / w
+            elif v > lim_hi:
+                s = (lim_hi - v) / w
+            else:
+                continue
+            x += s * L[j, 0]
+            y += s * L[j, 1]
+            z += s * L[j, 2]
+            moved = True
+        best = _try_point(L, lo, hi, idx, m, U, x, y, z, best, bp)
+        if best >= m or not moved:
+            break
     return best
 
 
 @njit(cache=True, nogil=True)
 def solve_exact(
-    I, slab_lo, slab_hi, valid, L, box_factor, max_nodes, point, inl, count, nodes, certified
+    I, slab_lo, slab_hi, valid, L, box_factor, max_nodes, above, point, inl, count, nodes, certified
 ):  # pragma: no cover - numba
     """Solve every pixel of a batch; results are written into the output arrays.
 
@@ -318,13 +532,20 @@ def solve_exact(
     I : (P, k) float64 intensities (least-squares seeds only);
     slab_lo, slab_hi : (P, k) float64 slab bounds ``lo <= L_i . n <= hi``, read
     only where ``valid``; valid : (P, k) bool usable observations;
-    L : (k, 3) float64 unit lights; box_factor : float; max_nodes : int.
+    L : (k, 3) float64 unit lights; box_factor : float; max_nodes : int;
+    above : (P,) int64, an earlier pixel of the batch whose solution seeds this
+    one (the pixel above in the image), or -1.
     point : (P, 3) float64 out, the Max-FS point (NaN where unsolved);
     inl : (P, k) bool out; count : (P,) int32 out; nodes : (P,) int64 out;
     certified : (P,) bool out, True where the optimum was proved.
     """
     P, k = I.shape
     absL = np.abs(L)
+    invL = np.zeros((k, 3))
+    for i in range(k):
+        for d in range(3):
+            if L[i, d] != 0.0:
+                invL[i, d] = 1.0 / L[i, d]
     a = np.zeros(k)
     b = np.zeros(k)
     idx = np.empty(k, np.int32)
@@ -336,15 +557,17 @@ def solve_exact(
     pool = np.empty((_STACK, k), np.int32)
     pv = np.empty((_STACK, k))
     pr = np.empty((_STACK, k))
-    si = np.empty(k, np.int32)
-    sv = np.empty(k)
-    sr = np.empty(k)
+    bs = np.empty(k + 1)
+    be = np.empty(k + 1)
     lo = np.zeros(k)
     hi = np.zeros(k)
+    los = np.zeros(k)
+    his = np.zeros(k)
+    lof = np.zeros(k)
+    hif = np.zeros(k)
+    margin = np.zeros(k)
     sel = np.zeros(k, np.bool_)
-    prev_sel = np.zeros(k, np.bool_)
-    prev_pt = np.zeros(3)
-    has_prev = False
+    prev = -1
     bp = np.zeros(3)
     tmp = np.zeros(3)
     for px in range(P):
@@ -369,61 +592,88 @@ def solve_exact(
             continue
         U = box_factor * maxb
         tol = REL_TOL * maxb
-        best = -1
-        # incumbents: the neighbour's point and inlier set, then trimmed least squares
-        if has_prev:
-            best = _try_point(L, a, b, idx, m, U, tol, prev_pt[0], prev_pt[1], prev_pt[2], best, bp)
-            for i in range(k):
-                sel[i] = prev_sel[i] and valid[px, i]
-            if _lsq(L, I[px], sel, k, tmp):
-                best = _try_point(L, a, b, idx, m, U, tol, tmp[0], tmp[1], tmp[2], best, bp)
-        for i in range(k):
-            sel[i] = valid[px, i]
-        for it in range(5):
-            if not _lsq(L, I[px], sel, k, tmp):
-                break
-            best = _try_point(L, a, b, idx, m, U, tol, tmp[0], tmp[1], tmp[2], best, bp)
-            slack = eps * (3.0 - it) if it < 3 else 0.0
-            for i in range(k):
-                if valid[px, i]:
-                    v = L[i, 0] * tmp[0] + L[i, 1] * tmp[1] + L[i, 2] * tmp[2]
-                    sel[i] = v >= a[i] - slack and v <= b[i] + slack
+        sig = _SIGMA_REL * U
         for q in range(m):
-            lo[idx[q]] = a[idx[q]] - tol
-            hi[idx[q]] = b[idx[q]] + tol
-        hmin = _HMIN_REL * eps
-        best, nn, cert = _bnb(
-            L,
-            absL,
-            lo,
-            hi,
-            a,
-            b,
-            idx,
-            m,
-            U,
-            tol,
-            hmin,
-            max_nodes,
-            best,
-            bp,
-            stc,
-            sth,
-            stf,
-            stp,
-            strow,
-            pool,
-            pv,
-            pr,
-            si,
-            sv,
-            sr,
-        )
+            j = idx[q]
+            lo[j] = a[j] - tol
+            hi[j] = b[j] + tol
+            los[j] = lo[j] - sig
+            his[j] = hi[j] + sig
+            lof[j] = lo[j] + sig
+            hif[j] = hi[j] - sig
+            margin[j] = 1e-3 * (b[j] - a[j])
+        best = -1
+        # incumbents: the previous and the upper pixel's points and inlier sets, then trimmed least squares
+        for t in range(2):
+            src = prev if t == 0 else above[px]
+            if t == 1 and src == prev:
+                continue
+            if best >= m or src < 0 or src >= px or not point[src, 0] == point[src, 0]:
+                continue
+            best = _try_point(L, lo, hi, idx, m, U, point[src, 0], point[src, 1], point[src, 2], best, bp)
+            for i in range(k):
+                sel[i] = inl[src, i] and valid[px, i]
+            if _lsq(L, I[px], sel, k, tmp):
+                best = _try_point(L, lo, hi, idx, m, U, tmp[0], tmp[1], tmp[2], best, bp)
+        if best < m:
+            for i in range(k):
+                sel[i] = valid[px, i]
+            for it in range(5):
+                if not _lsq(L, I[px], sel, k, tmp):
+                    break
+                best = _try_point(L, lo, hi, idx, m, U, tmp[0], tmp[1], tmp[2], best, bp)
+                if best >= m:
+                    break
+                slack = eps * (3.0 - it) if it < 3 else 0.0
+                for i in range(k):
+                    if valid[px, i]:
+                        v = L[i, 0] * tmp[0] + L[i, 1] * tmp[1] + L[i, 2] * tmp[2]
+                        sel[i] = v >= a[i] - slack and v <= b[i] + slack
+        if 0 <= best < m and best >= m - _AP_GAP:
+            tmp[0] = bp[0]
+            tmp[1] = bp[1]
+            tmp[2] = bp[2]
+            best = _project(L, a, b, idx, m, U, margin, tmp, _AP_SWEEPS, lo, hi, best, bp)
+        nn = 0
+        cert = True
+        if best < m:
+            hmin = _HMIN_REL * eps
+            best, nn, cert = _bnb(
+                L,
+                absL,
+                invL,
+                a,
+                b,
+                lo,
+                hi,
+                los,
+                his,
+                lof,
+                hif,
+                idx,
+                m,
+                U,
+                tol,
+                hmin,
+                max_nodes,
+                best,
+                bp,
+                stc,
+                sth,
+                stf,
+                stp,
+                strow,
+                pool,
+                pv,
+                pr,
+                bs,
+                be,
+            )
         c = 0
         for q in range(m):
             j = idx[q]
             v = L[j, 0] * bp[0] + L[j, 1] * bp[1] + L[j, 2] * bp[2]
-            if v >= a[j] - tol and v <= b[j] + tol:
+            if v >= lo[j] and v <= hi[j]:
                 inl[px, j] = True
                 c += 1
         count[px] = c
@@ -431,10 +681,7 @@ def solve_exact(
         certified[px] = cert
         for d in range(3):
             point[px, d] = bp[d]
-            prev_pt[d] = bp[d]
-        for i in range(k):
-            prev_sel[i] = inl[px, i]
-        has_prev = True
+        prev = px
 
 
 def exact_pixels(
@@ -445,11 +692,15 @@ def exact_pixels(
     L: NDArray[np.float64],
     box_factor: float,
     max_nodes: int,
+    above: NDArray[np.integer] | None = None,
 ) -> tuple[NDArray[np.float64], NDArray[np.bool_], NDArray[np.int32], NDArray[np.int64], NDArray[np.bool_]]:
     """Run :func:`solve_exact` on ``(P, k)`` arrays; returns (point, inliers, count, nodes, certified).
 
     ``lo``, ``hi`` are the slab bounds (e.g. :func:`worker.problem.slabs`), read
-    only where ``valid``; ``I`` seeds the least-squares incumbents.
+    only where ``valid``; ``I`` seeds the least-squares incumbents. ``above``
+    (optional, ``(P,)``) names for each pixel an earlier pixel of the batch whose
+    solution is a second seed (the pixel above; see :func:`above_index`), -1 for
+    none. Seeds change the work, never the count.
     """
     P, k = I.shape
     point = np.empty((P, 3))
@@ -457,6 +708,9 @@ def exact_pixels(
     count = np.empty(P, dtype=np.int32)
     nodes = np.empty(P, dtype=np.int64)
     cert = np.empty(P, dtype=np.bool_)
+    up = np.full(P, -1, dtype=np.int64) if above is None else np.ascontiguousarray(above, dtype=np.int64)
+    if up.shape != (P,):
+        raise ValueError(f"above must have shape ({P},), got {up.shape}")
     solve_exact(
         np.ascontiguousarray(I, dtype=np.float64),
         np.ascontiguousarray(lo, dtype=np.float64),
@@ -465,6 +719,7 @@ def exact_pixels(
         np.ascontiguousarray(L, dtype=np.float64),
         float(box_factor),
         int(max_nodes),
+        up,
         point,
         inl,
         count,
@@ -472,3 +727,13 @@ def exact_pixels(
         cert,
     )
     return point, inl, count, nodes, cert
+
+
+def above_index(rows: NDArray[np.integer], width: int) -> NDArray[np.int64]:
+    """For pixels ``rows`` (increasing flat indices into an image ``width`` wide), the
+    position in ``rows`` of the pixel above each one, or -1 where that pixel is not in ``rows``."""
+    r = np.asarray(rows, dtype=np.int64)
+    want = r - int(width)
+    pos = np.minimum(np.searchsorted(r, want), max(r.size - 1, 0))
+    hit = (want >= 0) & (r[pos] == want) if r.size else np.zeros(0, dtype=bool)
+    return np.where(hit, pos, -1).astype(np.int64)
