@@ -1,6 +1,8 @@
-"""Solver speed and accuracy on the paper's synthetic sphere.
+"""Solver speed and accuracy: the paper's sphere, and the exact kernel before and after.
 
-Prints one markdown table: per k and solver, ms per pixel and mean angular error.
+Prints markdown tables.
+
+**sphere** (``--tables sphere``): per k and solver, ms per pixel and mean angular error.
 
 * ``batch ms/px``: a whole image solved in one call (the service's path; the
   exact solver seeds each pixel with its neighbour's solution).
@@ -10,6 +12,18 @@ Prints one markdown table: per k and solver, ms per pixel and mean angular error
 * ``milp/solver``: MILP time over the solver's on the same pixels, as a ratio of
   medians and of means (the MILP's cost is in its tail).
 
+**kernel** (``--tables kernel``): the exact kernel against the first one
+(:mod:`bench.exact_v1`, kept for this comparison) on the same pixels in the same
+process: :func:`worker.synthetic.realistic_scene` (16-bit, cast and attached
+shadows, glossy lobes, shot and read noise) for several k, the seven UW psm
+objects (12 images, a centre crop of the mask) and the three DiLiGenT crops
+(96 images, a centre crop). eps is the job's automatic rule
+(:func:`worker.noise.estimate_eps`) on the pixels solved. Times are CPU time of
+the solving thread for a whole batch in raster order (the service's path), the
+best of ``--reps`` interleaved runs; ``old == new`` compares every pixel's
+count; ``new == MILP`` compares the count on a sample of pixels with outliers
+(HiGHS, ``--milp-cap`` seconds each).
+
 Run: ``python -m bench.solvers`` (``--quick`` for a smaller run).
 """
 
@@ -17,15 +31,25 @@ from __future__ import annotations
 
 import argparse
 import time
+from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
+from bench.exact_v1 import exact_pixels as exact_pixels_v1
+from storage.datasets import load_folder
 from worker import synthetic
 from worker.exact import exact_pixels
 from worker.lstsq import refit
 from worker.milp import MilpSolver
+from worker.noise import estimate_eps
+from worker.observations import ObservationModel
 from worker.problem import make_thresholds, slabs, usable
 from worker.solve import solve_pixels
+
+DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+UW_OBJECTS = ("buddha", "cat", "chrome", "gray", "horse", "owl", "rock")
+DILIGENT_OBJECTS = ("catPNG", "cowPNG", "pot1PNG")
 
 
 def _time_each(fn, rows: list) -> np.ndarray:
@@ -85,18 +109,132 @@ def _bench_k(k: int, args: argparse.Namespace) -> list[tuple]:
     return rows
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--ks", type=int, nargs="+", default=[12, 24, 48, 96, 196])
-    ap.add_argument("--size", type=int, default=64, help="sphere image edge in pixels")
-    ap.add_argument("--sample", type=int, default=40, help="pixels timed one by one (and for milp)")
-    ap.add_argument("--milp-cap", type=float, default=5.0, help="MILP seconds per pixel")
-    ap.add_argument("--eps", type=float, default=1.0)
-    ap.add_argument("--quick", action="store_true", help="k = 12, 48 on a 32 px sphere")
-    args = ap.parse_args()
-    if args.quick:
-        args.ks, args.size, args.sample = [12, 48], 32, 15
+@dataclass(frozen=True)
+class Pixels:
+    """The usable pixels of one scene, as the exact kernel sees them."""
 
+    name: str
+    I: np.ndarray  # (P, k)
+    V: np.ndarray  # (P, k) usable
+    L: np.ndarray  # (k, 3)
+    eps: float
+    box_factor: float
+
+
+def _auto_eps_pixels(name: str, grey, saturated, L, mask, integer_valued: bool) -> Pixels:
+    k = L.shape[0]
+    m = mask.ravel()
+    ok = np.isfinite(grey) & (grey > 0) & ~saturated
+    eps = estimate_eps(grey[m], ok[m], L, integer_valued=integer_valued)
+    th = make_thresholds(k, eps)
+    V = usable(grey.T, th).T & ~saturated & m[:, None]
+    rows = np.flatnonzero(V.sum(axis=1) >= 3)  # raster order, as in a tile
+    return Pixels(name, grey[rows], V[rows], L, eps, th.box_factor)
+
+
+def realistic_pixels(k: int, size: int, seed: int = 0) -> Pixels:
+    sc = synthetic.realistic_scene(k, size, seed=seed)
+    grey = sc.images.reshape(k, -1).T.copy()
+    return _auto_eps_pixels(f"realistic {size}x{size}", grey, grey >= sc.saturation, sc.lights, sc.mask, True)
+
+
+def dataset_pixels(folder: Path, crop: int) -> Pixels:
+    """A ``crop`` x ``crop`` window centred on the mask's centroid."""
+    ds = load_folder(folder)
+    mask = ds.mask if ds.mask is not None else np.ones((ds.height, ds.width), bool)
+    ys, xs = np.nonzero(mask)
+    y0 = int(np.clip(ys.mean() - crop / 2, 0, max(ds.height - crop, 0)))
+    x0 = int(np.clip(xs.mean() - crop / 2, 0, max(ds.width - crop, 0)))
+    win = (slice(y0, y0 + crop), slice(x0, x0 + crop))
+    raw = np.stack([ds.read(i)[win] for i in range(ds.k)])
+    obs = ObservationModel.for_input(raw.dtype, ds.k, ds.channels, ds.intensities)
+    grey, _, saturated = obs.prepare(raw)
+    name = f"{ds.name} {crop}x{crop}"
+    return _auto_eps_pixels(name, grey, saturated, ds.lights, mask[win], obs.integer_valued)
+
+
+def _cpu_ms(fn) -> tuple[float, object]:
+    t = time.thread_time()
+    out = fn()
+    return (time.thread_time() - t) * 1e3, out
+
+
+def kernel_row(px: Pixels, reps: int, milp_sample: int, milp_cap: float) -> dict:
+    """Old and new exact kernel on the same pixels, timed alternately in this process."""
+    I, V, L = px.I, px.V, px.L
+    lo, hi = slabs(I, px.eps)
+    old = lambda: exact_pixels_v1(I, V, L, px.eps, px.box_factor, 10**8)  # noqa: E731
+    new = lambda: exact_pixels(I, lo, hi, V, L, px.box_factor, 10**8)  # noqa: E731
+    exact_pixels_v1(I[:2], V[:2], L, px.eps, px.box_factor, 10**8)  # JIT warm-up
+    exact_pixels(I[:2], lo[:2], hi[:2], V[:2], L, px.box_factor, 10**8)
+    t_old, t_new = [], []
+    for _ in range(reps):
+        t, r_old = _cpu_ms(old)
+        t_old.append(t)
+        t, r_new = _cpu_ms(new)
+        t_new.append(t)
+    P = len(I)
+    c_old, c_new = r_old[2], r_new[2]
+    hard = np.flatnonzero(c_new < V.sum(axis=1))
+    pick = hard[np.linspace(0, hard.size - 1, min(milp_sample, hard.size)).astype(int)] if hard.size else hard
+    milp = "-"
+    if pick.size:
+        _, _, mc, mcert, _ = MilpSolver(L, milp_cap).solve_pixels(I[pick], V[pick], px.eps, px.box_factor)
+        milp = f"{int((mc == c_new[pick]).sum())}/{pick.size}"
+        low = int((mc < c_new[pick]).sum())
+        if low:
+            milp += f" (MILP lower on {low}{', capped' if not mcert.all() else ''})"
+    return {
+        "scene": px.name,
+        "k": L.shape[0],
+        "pixels": P,
+        "eps": px.eps,
+        "old": min(t_old) / P,
+        "new": min(t_new) / P,
+        "n_old": float(r_old[3].mean()),
+        "n_new": float(r_new[3].mean()),
+        "equal": f"{int((c_old == c_new).sum())}/{P}",
+        "cert": bool(r_new[4].all() and r_old[4].all()),
+        "milp": milp,
+    }
+
+
+def print_kernel_table(rows: list[dict], title: str) -> None:
+    print(f"\n{title}\n")
+    print(
+        "| scene | k | pixels | eps | old ms/px | new ms/px | speed-up | old nodes/px | new nodes/px "
+        "| count old == new | count new == MILP |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    for r in rows:
+        cert = "" if r["cert"] else " (budget hit)"
+        print(
+            f"| {r['scene']} | {r['k']} | {r['pixels']} | {r['eps']:.3g} | {r['old']:.4f} | {r['new']:.4f} "
+            f"| {r['old'] / r['new']:.2f}x | {r['n_old']:.0f} | {r['n_new']:.0f} "
+            f"| {r['equal']}{cert} | {r['milp']} |"
+        )
+    if len(rows) > 1:
+        gm = float(np.exp(np.mean([np.log(r["old"] / r["new"]) for r in rows])))
+        tot = sum(r["old"] * r["pixels"] for r in rows) / sum(r["new"] * r["pixels"] for r in rows)
+        print(f"\nspeed-up: geometric mean {gm:.2f}x, total time {tot:.2f}x")
+
+
+def kernel_tables(args: argparse.Namespace) -> None:
+    def run(px: Pixels) -> dict:
+        return kernel_row(px, args.reps, args.milp_sample, args.milp_cap)
+
+    rows = [run(realistic_pixels(k, args.real_size)) for k in args.real_ks]
+    print_kernel_table(rows, "exact kernel, realistic scene (16-bit, auto eps)")
+    if args.uw_crop > 0 and (DATA / "uw-psm").is_dir():
+        rows = [run(dataset_pixels(DATA / "uw-psm" / o, args.uw_crop)) for o in UW_OBJECTS]
+        print_kernel_table(rows, "exact kernel, UW psm objects (12 images, 8-bit, auto eps)")
+    if args.diligent_crop > 0 and (DATA / "diligent-crop8").is_dir():
+        dil = DATA / "diligent-crop8"
+        rows = [run(dataset_pixels(dil / o, args.diligent_crop)) for o in DILIGENT_OBJECTS]
+        print_kernel_table(rows, "exact kernel, DiLiGenT crops (96 images, 8-bit, auto eps)")
+
+
+def sphere_table(args: argparse.Namespace) -> None:
     rows = [row for k in args.ks for row in _bench_k(k, args)]
     print(f"sphere {args.size}x{args.size}, eps={args.eps}, 8-bit, {args.sample} pixels timed one by one\n")
     print(
@@ -110,6 +248,33 @@ def main() -> None:
             f"| {k} | {name} | {b} | {med:.4f} | {p95:.4f} | {ratio:.0f}x | {mean_ratio:.0f}x "
             f"| {err:.4f} | {capped} |"
         )
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--tables", nargs="+", choices=["sphere", "kernel"], default=["sphere", "kernel"])
+    ap.add_argument("--ks", type=int, nargs="+", default=[12, 24, 48, 96, 196])
+    ap.add_argument("--size", type=int, default=64, help="sphere image edge in pixels")
+    ap.add_argument("--sample", type=int, default=40, help="pixels timed one by one (and for milp)")
+    ap.add_argument("--milp-cap", type=float, default=5.0, help="MILP seconds per pixel")
+    ap.add_argument("--eps", type=float, default=1.0)
+    ap.add_argument("--real-ks", type=int, nargs="+", default=[48, 96, 196, 400], help="kernel: realistic k")
+    ap.add_argument("--real-size", type=int, default=40, help="kernel: realistic scene edge in pixels")
+    ap.add_argument("--uw-crop", type=int, default=96, help="kernel: UW crop edge (0: skip)")
+    ap.add_argument("--diligent-crop", type=int, default=64, help="kernel: DiLiGenT crop edge (0: skip)")
+    ap.add_argument("--reps", type=int, default=3, help="kernel: interleaved timing runs (best taken)")
+    ap.add_argument("--milp-sample", type=int, default=5, help="kernel: pixels checked against the MILP")
+    ap.add_argument("--quick", action="store_true", help="smaller runs of every table")
+    args = ap.parse_args()
+    if args.quick:
+        args.ks, args.size, args.sample = [12, 48], 32, 15
+        args.real_ks, args.real_size, args.uw_crop, args.diligent_crop = [48, 96], 24, 48, 32
+        args.reps, args.milp_sample = 2, 3
+
+    if "sphere" in args.tables:
+        sphere_table(args)
+    if "kernel" in args.tables:
+        kernel_tables(args)
 
 
 if __name__ == "__main__":
