@@ -11,7 +11,6 @@ import pytest
 from worker import synthetic
 from worker.exact import _axis_hull, above_index, exact_pixels
 from worker.milp import MilpSolver
-from worker.noise import estimate_eps
 from worker.problem import REL_TOL, make_thresholds, slabs, usable
 
 BOX = 10.0
@@ -147,10 +146,16 @@ def test_axis_hull_is_the_hull_of_the_offsets_where_few_slabs_miss() -> None:
 # --- optimal counts on the realistic scene -----------------------------------------
 
 
+#: About what the automatic rule picks on this scene (3 robust sigmas of the residuals,
+#: shot noise plus the Oren-Nayar and glossy departures from Lambert); fixed here so
+#: the test does not move with the estimator.
+EPS_REALISTIC = 700.0
+
+
 def _realistic(k: int, size: int, seed: int):
     sc = synthetic.realistic_scene(k, size, seed=seed)
     I = sc.images[:, sc.mask].T.copy()
-    eps = estimate_eps(I, (I > 0) & (I < sc.saturation), sc.lights, integer_valued=True)
+    eps = EPS_REALISTIC
     th = make_thresholds(k, eps, saturation=sc.saturation)
     V = usable(I.T, th).T
     lo, hi = slabs(I, eps)
@@ -190,9 +195,10 @@ def test_exact_matches_milp_on_the_realistic_scene(k: int) -> None:
 
 @pytest.mark.parametrize(("k", "size", "seed", "n"), [(24, 12, 3, 8), (48, 10, 5, 3), (100, 8, 2, 1)])
 def test_exact_matches_vertex_enumeration_on_the_hardest_pixels(k: int, size: int, seed: int, n: int) -> None:
-    """Independent of HiGHS, which misses the optimum on some of these pixels: the
-    optimum is attained at a vertex of the arrangement, so try them all (with a
-    tolerance 100x looser than the kernel's, so this can only over-count)."""
+    """Independent of HiGHS, which has been seen to miss the optimum on such pixels
+    (this scene at k=24, seed 3, with eps=708: 15 for 16): the optimum is attained at
+    a vertex of the arrangement, so try them all (with a tolerance 100x looser than
+    the kernel's, so this can only over-count)."""
     L, I, V, lo, hi, _ = _realistic(k, size, seed)
     pt, inl, cnt, _, cert = exact_pixels(I, lo, hi, V, L, BOX, 10**7)
     assert cert.all()
