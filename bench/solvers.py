@@ -17,8 +17,8 @@ Prints markdown tables.
 process: :func:`worker.synthetic.realistic_scene` (16-bit, cast and attached
 shadows, glossy lobes, shot and read noise) for several k, the seven UW psm
 objects (12 images, a centre crop of the mask) and the three DiLiGenT crops
-(96 images, a centre crop). eps is the job's automatic rule
-(:func:`worker.noise.estimate_eps`) on the pixels solved. Times are CPU time of
+(96 images, a centre crop), each as the raw stack a job gets. eps is the job's
+automatic rule (:func:`worker.solve.estimate_job_eps`). Times are CPU time of
 the solving thread for a whole batch in raster order (the service's path), the
 best of ``--reps`` interleaved runs; ``old == new`` compares every pixel's
 count; ``new == MILP`` compares the count on a sample of pixels with outliers
@@ -42,10 +42,10 @@ from worker import synthetic
 from worker.exact import exact_pixels
 from worker.lstsq import refit
 from worker.milp import MilpSolver
-from worker.noise import estimate_eps
 from worker.observations import ObservationModel
 from worker.problem import make_thresholds, slabs, usable
-from worker.solve import solve_pixels
+from worker.solve import estimate_job_eps, solve_pixels
+from worker.tiles import DEFAULT_TILE
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 UW_OBJECTS = ("buddha", "cat", "chrome", "gray", "horse", "owl", "rock")
@@ -121,21 +121,23 @@ class Pixels:
     box_factor: float
 
 
-def _auto_eps_pixels(name: str, grey, saturated, L, mask, integer_valued: bool) -> Pixels:
-    k = L.shape[0]
-    m = mask.ravel()
-    ok = np.isfinite(grey) & (grey > 0) & ~saturated
-    eps = estimate_eps(grey[m], ok[m], L, integer_valued=integer_valued)
+def _job_pixels(name: str, raw: np.ndarray, L: np.ndarray, mask: np.ndarray, intensities=None) -> Pixels:
+    """The pixels a job on the raw stack ``(k, H, W[, C])`` would solve, with eps by the
+    job's automatic rule (:func:`worker.solve.estimate_job_eps`), in raster order."""
+    k, H, W = raw.shape[:3]
+    obs = ObservationModel.for_input(raw.dtype, k, raw.shape[3] if raw.ndim == 4 else None, intensities)
+    eps = estimate_job_eps(lambda t: raw[:, t.y0 : t.y1, t.x0 : t.x1], L, obs, mask, (H, W), DEFAULT_TILE)
+    grey, _, saturated = obs.prepare(raw)
     th = make_thresholds(k, eps)
-    V = usable(grey.T, th).T & ~saturated & m[:, None]
-    rows = np.flatnonzero(V.sum(axis=1) >= 3)  # raster order, as in a tile
+    V = usable(grey.T, th).T & ~saturated & mask.ravel()[:, None]
+    rows = np.flatnonzero(V.sum(axis=1) >= 3)
     return Pixels(name, grey[rows], V[rows], L, eps, th.box_factor)
 
 
 def realistic_pixels(k: int, size: int, seed: int = 0) -> Pixels:
+    """:func:`worker.synthetic.realistic_scene` as a 16-bit raw stack."""
     sc = synthetic.realistic_scene(k, size, seed=seed)
-    grey = sc.images.reshape(k, -1).T.copy()
-    return _auto_eps_pixels(f"realistic {size}x{size}", grey, grey >= sc.saturation, sc.lights, sc.mask, True)
+    return _job_pixels(f"realistic {size}x{size}", sc.images.astype(np.uint16), sc.lights, sc.mask)
 
 
 def dataset_pixels(folder: Path, crop: int) -> Pixels:
@@ -147,10 +149,7 @@ def dataset_pixels(folder: Path, crop: int) -> Pixels:
     x0 = int(np.clip(xs.mean() - crop / 2, 0, max(ds.width - crop, 0)))
     win = (slice(y0, y0 + crop), slice(x0, x0 + crop))
     raw = np.stack([ds.read(i)[win] for i in range(ds.k)])
-    obs = ObservationModel.for_input(raw.dtype, ds.k, ds.channels, ds.intensities)
-    grey, _, saturated = obs.prepare(raw)
-    name = f"{ds.name} {crop}x{crop}"
-    return _auto_eps_pixels(name, grey, saturated, ds.lights, mask[win], obs.integer_valued)
+    return _job_pixels(f"{ds.name} {crop}x{crop}", raw, ds.lights, mask[win], ds.intensities)
 
 
 def _cpu_ms(fn) -> tuple[float, object]:
