@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from worker import synthetic
-from worker.exact import _axis_hull, above_index, exact_pixels
+from worker.exact import _hull_pass, _sweep, above_index, exact_pixels
 from worker.milp import MilpSolver
 from worker.problem import REL_TOL, make_thresholds, slabs, usable
 
@@ -115,7 +115,8 @@ def test_axis_hull_is_the_hull_of_the_offsets_where_few_slabs_miss() -> None:
         rad = np.abs(L) @ h
         lo = v + rng.normal(size=k) * rad
         hi = lo + rng.uniform(0.05, 2.0, k) * rad
-        cross = (v + rad >= lo) & (v - rad <= hi)
+        full = (v - rad >= lo) & (v + rad <= hi)
+        cross = (v + rad >= lo) & (v - rad <= hi) & ~full
         if cross.sum() < 2:
             continue
         d = int(rng.integers(3))
@@ -124,10 +125,11 @@ def test_axis_hull_is_the_hull_of_the_offsets_where_few_slabs_miss() -> None:
         absL = np.abs(L)
         invL = np.where(L != 0, 1.0 / np.where(L != 0, L, 1.0), 0.0)
         row = np.flatnonzero(cross).astype(np.int32)
-        bs, be = np.empty(k + 1), np.empty(k + 1)
-        ok, smin, smax = _axis_hull(
-            L, absL, invL, lo, hi, row, v[row].copy(), rad[row].copy(), p, d, h[d], g, bs, be
-        )
+        bs, bneg = np.empty(k + 1), np.empty(k + 1)
+        args = (L, absL, invL, lo, hi, row, v[row].copy(), rad[row].copy(), p, 0, d, h[d], 0, 0.0, 0.0, g + 1)
+        f2, p2, _, _ = _hull_pass(*args, bs, bneg)
+        assert (f2, p2) == (0, p)  # every slab still crosses
+        ok, smin, smax = _sweep(bs, bneg, g)
         # the same intervals, and cnt(s) evaluated at every endpoint
         ro = np.maximum(rad[row] - absL[row, d] * h[d], 0.0)
         t0 = (lo[row] - v[row] - ro) * invL[row, d]

@@ -172,68 +172,90 @@ def _enum_leaf(L, a, b, lo, hi, tol, idx, m, row, p, c, h, f, best, bp):  # prag
 
 
 @njit(cache=True, nogil=True)
-def _axis_hull(L, absL, invL, los, his, prow, pvrow, prrow, p, d, hd, g, bs, be):  # pragma: no cover - numba
-    """Hull ``[smin, smax]`` of the offsets ``s`` in ``[-hd, hd]`` along axis ``d``
-    where at most ``g`` of the box's ``p`` crossing slabs miss (``g < p``).
+def _keep_largest(buf, size, n, x):  # pragma: no cover - numba
+    """Insert ``x`` into ``buf[:size]`` (descending) keeping at most the ``n`` largest; new size."""
+    if size < n:
+        i = size
+        size += 1
+    elif x > buf[n - 1]:
+        i = n - 1
+    else:
+        return size
+    while i > 0 and buf[i - 1] < x:
+        buf[i] = buf[i - 1]
+        i -= 1
+    buf[i] = x
+    return size
 
-    Returns (nonempty, smin, smax). Slab ``j`` over the box, with the coordinate
-    along ``d`` fixed at ``c_d + s``, reaches ``v + L_jd s +- r`` with ``r`` the
-    half-range over the other two axes, so it can hold a point there only for
-    ``s`` in ``[S_j, E_j]``. ``cnt(s) = #{S_j > s} + #{E_j < s}`` slabs miss
-    every point at ``s``; the leftmost ``s`` with ``cnt(s) <= g`` is one of the
-    ``g + 1`` largest starts and the rightmost one of the ``g + 1`` smallest ends.
+
+@njit(cache=True, nogil=True)
+def _hull_pass(
+    L, absL, invL, lo, hi, prow, pvrow, prrow, p, f, d, hd, pd, dc, dh, n, bs, bneg
+):  # pragma: no cover - numba
+    """One pass over a box's crossing slabs: apply a pending move of axis ``pd``
+    (centre by ``dc``, half-width by ``dh``; zeros for none), re-classify and compact
+    the row, and keep the ``n`` largest starts (``bs``) and ``n`` smallest ends (as
+    negated values, ``bneg``) of the slabs' intervals along axis ``d`` (see :func:`_sweep`).
+
+    Returns (f, p, slabs of the row holding the centre, starts kept).
+    ``prrow`` holds ``|L|.h`` plus the rounding slack, so "touches" and "contains"
+    both err toward "crosses".
     """
-    n = g + 1
     ns = 0
     ne = 0
+    q2 = 0
+    cc = 0
     for q in range(p):
         j = prow[q]
-        v = pvrow[q]
-        ro = max(prrow[q] - absL[j, d] * hd, 0.0)
-        iv = invL[j, d]
-        if iv != 0.0:  # sign-free: the interval is between the two scaled bounds
-            t0 = (los[j] - v - ro) * iv
-            t1 = (his[j] - v + ro) * iv
-            s0 = max(min(t0, t1), -hd)
-            s1 = min(max(t0, t1), hd)
-        else:  # L_jd = 0: no information along this axis
-            s0 = -hd
-            s1 = hd
-        # keep the n largest starts, descending
-        if ns < n:
-            i = ns
-            ns += 1
-        elif s0 > bs[n - 1]:
-            i = n - 1
-        else:
-            i = -1
-        if i >= 0:
-            while i > 0 and bs[i - 1] < s0:
-                bs[i] = bs[i - 1]
-                i -= 1
-            bs[i] = s0
-        # keep the n smallest ends, ascending
-        if ne < n:
-            i = ne
-            ne += 1
-        elif s1 < be[n - 1]:
-            i = n - 1
-        else:
-            i = -1
-        if i >= 0:
-            while i > 0 and be[i - 1] > s1:
-                be[i] = be[i - 1]
-                i -= 1
-            be[i] = s1
-    # leftmost: candidate starts in ascending order; "above" = starts strictly greater
+        v = pvrow[q] + L[j, pd] * dc
+        rad = prrow[q] + absL[j, pd] * dh
+        lj = lo[j]
+        hj = hi[j]
+        full = (v - rad >= lj) & (v + rad <= hj)
+        cross = (v + rad >= lj) & (v - rad <= hj) & (not full)
+        f += full
+        prow[q2] = j
+        pvrow[q2] = v
+        prrow[q2] = rad
+        cc += cross & (v >= lj) & (v <= hj)
+        q2 += cross
+        if cross:
+            # the slab, with the coordinate along d at c_d + s, reaches v + L_jd s +- ro
+            ro = max(rad - absL[j, d] * hd, 0.0)
+            iv = invL[j, d]
+            if iv != 0.0:  # sign-free: the interval lies between the two scaled bounds
+                t0 = (lj - v - ro) * iv
+                t1 = (hj - v + ro) * iv
+                s0 = max(min(t0, t1), -hd)
+                s1 = min(max(t0, t1), hd)
+            else:  # L_jd = 0: no information along this axis
+                s0 = -hd
+                s1 = hd
+            ns = _keep_largest(bs, ns, n, s0)
+            ne = _keep_largest(bneg, ne, n, -s1)
+    return f, q2, cc, ns
+
+
+@njit(cache=True, nogil=True)
+def _sweep(bs, bneg, g):  # pragma: no cover - numba
+    """Hull ``[smin, smax]`` of the offsets ``s`` where at most ``g`` intervals miss.
+
+    ``bs`` holds (at least) the ``g + 1`` largest interval starts ``S_j``, descending,
+    ``bneg`` the ``g + 1`` smallest ends ``E_j``, negated (so descending too). A point
+    at ``s`` misses ``cnt(s) = #{S_j > s} + #{E_j < s}`` intervals; the leftmost ``s``
+    with ``cnt(s) <= g`` is one of the ``g + 1`` largest starts and the rightmost one
+    of the ``g + 1`` smallest ends, so nothing else is needed (no full sort).
+    Returns (nonempty, smin, smax).
+    """
+    n = g + 1
     smin = 0.0
     found = False
     jb = 0
-    for i in range(n - 1, -1, -1):
+    for i in range(n - 1, -1, -1):  # starts, ascending; i = #starts strictly greater
         s = bs[i]
         if i > 0 and bs[i - 1] == s:
             continue
-        while jb < n and be[jb] < s:
+        while jb < n and -bneg[jb] < s:
             jb += 1
         if jb == n:
             break
@@ -245,9 +267,9 @@ def _axis_hull(L, absL, invL, los, his, prow, pvrow, prrow, p, d, hd, g, bs, be)
         return False, 0.0, 0.0
     smax = smin
     ja = 0
-    for i in range(n - 1, -1, -1):
-        s = be[i]
-        if i > 0 and be[i - 1] == s:
+    for i in range(n - 1, -1, -1):  # ends, descending; i = #ends strictly smaller
+        s = -bneg[i]
+        if i > 0 and bneg[i - 1] == bneg[i]:
             continue
         while ja < n and bs[ja] > s:
             ja += 1
@@ -270,10 +292,7 @@ def _bnb(
     b,
     lo,
     hi,
-    los,
-    his,
-    lof,
-    hif,
+    sig,
     idx,
     m,
     U,
@@ -291,16 +310,19 @@ def _bnb(
     pv,
     pr,
     bs,
-    be,
+    bneg,
 ):  # pragma: no cover - numba
     """Depth-first branch and bound; returns (best, nodes, certified).
 
     Each stack entry owns a pool row holding its crossing slabs' indices and, per
-    slab, ``L.c`` at the box centre and the half-range ``|L|.h``. A child updates
-    both by one term. ``lo``/``hi`` are the slab bounds widened by the count
-    tolerance (a point holds slab ``j`` iff ``lo_j <= L_j.n <= hi_j``); ``los``/
-    ``his`` widen them by the rounding slack for "may touch", ``lof``/``hif``
-    narrow them for "contains": box tests err toward "crossing".
+    slab, ``L.c`` at the box centre and the half-range ``|L|.h`` plus the rounding
+    slack ``sig``. A child updates both by one term. ``lo``/``hi`` are the slab
+    bounds widened by the count tolerance (a point holds slab ``j`` iff
+    ``lo_j <= L_j.n <= hi_j``).
+
+    The 1-D depth tests run fused with the re-classification that a shrink needs:
+    the pass for the next axis first applies the previous axis's move, and the
+    split applies the last one, so a shrink costs no extra pass over the slabs.
     """
     S = stf.shape[0]
     for s in range(S):
@@ -314,7 +336,7 @@ def _bnb(
         j = idx[q]
         pool[0, q] = j
         pv[0, q] = 0.0
-        pr[0, q] = U * (absL[j, 0] + absL[j, 1] + absL[j, 2])
+        pr[0, q] = U * (absL[j, 0] + absL[j, 1] + absL[j, 2]) + sig
     top = 1
     nodes = 0
     c = np.empty(3)
@@ -335,43 +357,39 @@ def _bnb(
         for d in range(3):
             c[d] = stc[top, d]
             h[d] = sth[top, d]
+        # a move of axis pd not yet applied to the row (none: dc = dh = 0)
+        pd = 0
+        dc = 0.0
+        dh = 0.0
         if f <= best and f + p - best <= _SHRINK_GAP and p > _ENUM_P:
             # 1-D depth tests: prune, or shrink the box to where it can still win
             pruned = False
             for t in range(3):
                 d = 2 if t == 0 else t - 1
-                g = f + p - best - 1
-                ok, smin, smax = _axis_hull(
-                    L, absL, invL, los, his, prow, pvrow, prrow, p, d, h[d], g, bs, be
+                # keep g + 1 = f + p - best ends: re-classification can only lower g
+                f, p, cc, _ = _hull_pass(
+                    L,
+                    absL,
+                    invL,
+                    lo,
+                    hi,
+                    prow,
+                    pvrow,
+                    prrow,
+                    p,
+                    f,
+                    d,
+                    h[d],
+                    pd,
+                    dc,
+                    dh,
+                    f + p - best,
+                    bs,
+                    bneg,
                 )
-                if not ok:
-                    pruned = True
-                    break
-                if smax - smin > _SHRINK_KEEP * 2.0 * h[d]:
-                    if t == 0:  # z, where slabs are thinnest, did not shrink: x, y would not
-                        break
-                    continue
-                dc = 0.5 * (smin + smax)
-                hn = 0.5 * (smax - smin)
-                dh = hn - h[d]
-                c[d] = c[d] + dc
-                h[d] = hn
-                # re-classify the crossing slabs (the rounding slack covers the update's)
-                np_ = 0
-                cc = 0
-                for q in range(p):
-                    j = prow[q]
-                    v = pvrow[q] + L[j, d] * dc
-                    rad = prrow[q] + absL[j, d] * dh
-                    full = (v - rad >= lof[j]) & (v + rad <= hif[j])
-                    cross = (v + rad >= los[j]) & (v - rad <= his[j]) & (not full)
-                    f += full
-                    prow[np_] = j
-                    pvrow[np_] = v
-                    prrow[np_] = rad
-                    cc += cross & (v >= lo[j]) & (v <= hi[j])
-                    np_ += cross
-                p = np_
+                pd = 0
+                dc = 0.0
+                dh = 0.0
                 if f + cc > best:
                     best = _claim(L, lo, hi, idx, m, c[0], c[1], c[2], best, bp)
                 if f + p <= best:
@@ -379,14 +397,34 @@ def _bnb(
                     break
                 if f > best or p <= _ENUM_P:
                     break
+                ok, smin, smax = _sweep(bs, bneg, f + p - best - 1)
+                if not ok:
+                    pruned = True
+                    break
+                if smax - smin > _SHRINK_KEEP * 2.0 * h[d]:
+                    if t == 0:  # z, where slabs are thinnest, did not shrink: x, y would not
+                        break
+                    continue
+                pd = d
+                dc = 0.5 * (smin + smax)
+                hn = 0.5 * (smax - smin)
+                dh = hn - h[d]
+                c[d] = c[d] + dc
+                h[d] = hn
             if pruned:
                 continue
         if p <= _ENUM_P:
+            if dc != 0.0 or dh != 0.0:
+                f, p, _, _ = _hull_pass(
+                    L, absL, invL, lo, hi, prow, pvrow, prrow, p, f, 0, h[0], pd, dc, dh, 1, bs, bneg
+                )
+                if f + p <= best:
+                    continue
             if p == 1:
                 # one crossing slab: a point of the box inside it has depth f + 1
                 j = prow[0]
                 v = pvrow[0]
-                rad = prrow[0]
+                rad = prrow[0] - sig
                 t0 = min(max(v, max(a[j], v - rad)), min(b[j], v + rad))
                 s = (t0 - v) / rad if rad > 0.0 else 0.0
                 x = c[0] + s * np.sign(L[j, 0]) * h[0]
@@ -404,6 +442,7 @@ def _bnb(
         if h[2] > h[ax]:
             ax = 2
         if h[ax] < hmin or top + 2 >= S:
+            # the row may still miss the last move: a superset of the crossing slabs is exact here
             best = _enum_leaf(L, a, b, lo, hi, tol, idx, m, prow, p, c, h, f, best, bp)
             continue
         hh = 0.5 * h[ax]
@@ -417,21 +456,17 @@ def _bnb(
         p1 = 0
         c0 = 0
         c1 = 0
-        # branchless split; child 0 compacts into the parent's own row (p0 <= q)
+        # branchless split (after the pending move); child 0 compacts into the parent's row (p0 <= q)
         for q in range(p):
             j = prow[q]
             dv = L[j, ax] * hh
-            rad = prrow[q] - absL[j, ax] * hh
-            vq = pvrow[q]
+            rad = prrow[q] + absL[j, pd] * dh - absL[j, ax] * hh
+            vq = pvrow[q] + L[j, pd] * dc
             lj = lo[j]
             hj = hi[j]
-            lsj = los[j]
-            hsj = his[j]
-            lfj = lof[j]
-            hfj = hif[j]
             v = vq - dv  # child 0: centre moved by -hh along ax
-            full = (v - rad >= lfj) & (v + rad <= hfj)
-            cross = (v + rad >= lsj) & (v - rad <= hsj) & (not full)
+            full = (v - rad >= lj) & (v + rad <= hj)
+            cross = (v + rad >= lj) & (v - rad <= hj) & (not full)
             f0 += full
             prow[p0] = j
             pvrow[p0] = v
@@ -439,8 +474,8 @@ def _bnb(
             c0 += cross & (v >= lj) & (v <= hj)
             p0 += cross
             v = vq + dv  # child 1
-            full = (v - rad >= lfj) & (v + rad <= hfj)
-            cross = (v + rad >= lsj) & (v - rad <= hsj) & (not full)
+            full = (v - rad >= lj) & (v + rad <= hj)
+            cross = (v + rad >= lj) & (v - rad <= hj) & (not full)
             f1 += full
             q0[p1] = j
             v1row[p1] = v
@@ -558,13 +593,9 @@ def solve_exact(
     pv = np.empty((_STACK, k))
     pr = np.empty((_STACK, k))
     bs = np.empty(k + 1)
-    be = np.empty(k + 1)
+    bneg = np.empty(k + 1)
     lo = np.zeros(k)
     hi = np.zeros(k)
-    los = np.zeros(k)
-    his = np.zeros(k)
-    lof = np.zeros(k)
-    hif = np.zeros(k)
     margin = np.zeros(k)
     sel = np.zeros(k, np.bool_)
     prev = -1
@@ -597,10 +628,6 @@ def solve_exact(
             j = idx[q]
             lo[j] = a[j] - tol
             hi[j] = b[j] + tol
-            los[j] = lo[j] - sig
-            his[j] = hi[j] + sig
-            lof[j] = lo[j] + sig
-            hif[j] = hi[j] - sig
             margin[j] = 1e-3 * (b[j] - a[j])
         best = -1
         # incumbents: the previous and the upper pixel's points and inlier sets, then trimmed least squares
@@ -646,10 +673,7 @@ def solve_exact(
                 b,
                 lo,
                 hi,
-                los,
-                his,
-                lof,
-                hif,
+                sig,
                 idx,
                 m,
                 U,
@@ -667,7 +691,7 @@ def solve_exact(
                 pv,
                 pr,
                 bs,
-                be,
+                bneg,
             )
         c = 0
         for q in range(m):
