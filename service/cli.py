@@ -63,6 +63,16 @@ def _images_arg(p: argparse.ArgumentParser) -> None:
     )
 
 
+def _cluster_arg(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--cluster",
+        choices=["local", "slurm", "address"],
+        default=None,
+        help="where tiles run: embedded cluster, SLURM worker jobs (MAXFS_SLURM_*), or --scheduler "
+        "(default: MAXFS_CLUSTER, else address when a scheduler is given, else local)",
+    )
+
+
 def _server_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--server", default=None, help="server URL (default: MAXFS_SERVER)")
     p.add_argument("--token", default=None, help="API token (default: MAXFS_TOKEN)")
@@ -121,6 +131,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         params,
         overwrite=args.overwrite,
         scheduler=scheduler,
+        cluster=args.cluster if args.cluster is not None else settings.cluster,
         workers=args.workers or settings.workers,
         in_process_bytes=settings.in_process_bytes,
         on_note=lambda note: print(note, file=sys.stderr),
@@ -251,6 +262,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
             "data_dir": args.data_dir,
             "workers": args.workers,
             "scheduler": args.scheduler,
+            "cluster": args.cluster,
             "auth": False if args.no_auth else None,
         }.items()
         if v is not None
@@ -371,6 +383,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", required=True, help="output job store (a .zarr folder)")
     _solver_args(p)
     p.add_argument("--scheduler", default=None, help="Dask scheduler address (default: embedded cluster)")
+    _cluster_arg(p)
     p.add_argument("--workers", type=int, default=None, help="embedded cluster worker processes")
     p.add_argument(
         "--overwrite",
@@ -414,6 +427,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--data-dir", default=None)
     p.add_argument("--workers", type=int, default=None)
     p.add_argument("--scheduler", default=None)
+    _cluster_arg(p)
     p.add_argument("--no-auth", action="store_true", help="no API tokens (single user, loopback only)")
     p.set_defaults(fn=cmd_serve)
     p = sub.add_parser("token", help="make, list or revoke API tokens of a server's users")

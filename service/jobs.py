@@ -1,13 +1,13 @@
 """The job manager: creates job stores, takes uploads, runs and cancels jobs.
 
-It owns the asynchronous Dask client (an embedded LocalCluster, or an external
-scheduler from settings) and one asyncio task per running job. On start it
-removes what a killed process left half-made (a job folder without a record,
-staged uploads, temp files) and resumes every job whose record says queued or
-running: a restarted server loses no finished tile and finishes what was in
-flight. Every job belongs to a user; other users get "no job" for it, as if it
-did not exist, unless they are admins. Per-user and disk limits are checked
-here, before anything is stored.
+It owns the asynchronous Dask client (:mod:`service.cluster`: an embedded
+LocalCluster, SLURM worker jobs, or an external scheduler, from settings) and
+one asyncio task per running job. On start it removes what a killed process left
+half-made (a job folder without a record, staged uploads, temp files) and
+resumes every job whose record says queued or running: a restarted server loses
+no finished tile and finishes what was in flight. Every job belongs to a user;
+other users get "no job" for it, as if it did not exist, unless they are admins.
+Per-user and disk limits are checked here, before anything is stored.
 """
 
 from __future__ import annotations
@@ -24,10 +24,11 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
-from distributed import Client, LocalCluster
+from distributed import Client
 from numpy.typing import NDArray
 
-from service.orchestrator import run_job, warm_workers
+from service.cluster import DaskCluster, start_cluster
+from service.orchestrator import run_job
 from service.settings import Settings
 from storage.layout import JobSpec, JobStore
 from storage.params import JobParams
@@ -61,7 +62,8 @@ class JobManager:
         self.settings = settings
         self.root = Path(settings.data_dir) / "jobs"
         self.client: Client | None = None
-        self.cluster: LocalCluster | None = None
+        #: where tiles run (service.cluster): embedded, SLURM worker jobs or an external scheduler
+        self.dask: DaskCluster | None = None
         self.runs: dict[str, asyncio.Task] = {}
         self.locks: dict[str, asyncio.Lock] = {}
         self.specs: dict[str, JobSpec] = {}
@@ -70,20 +72,8 @@ class JobManager:
     async def start(self) -> None:
         self.root.mkdir(parents=True, exist_ok=True)
         self.clean_orphans()
-        s = self.settings
-        if s.scheduler:
-            self.client = await Client(s.scheduler, asynchronous=True)
-        else:
-            self.cluster = await LocalCluster(
-                n_workers=s.workers,
-                threads_per_worker=1,
-                processes=True,
-                host="127.0.0.1",
-                dashboard_address=s.dashboard or None,
-                asynchronous=True,
-            )
-            self.client = await Client(self.cluster, asynchronous=True)
-        await warm_workers(self.client)
+        self.dask = await start_cluster(self.settings, log_dir=Path(self.settings.data_dir) / "slurm-logs")
+        self.client = self.dask.client
         for job_dir in sorted(self.root.iterdir()):
             try:
                 rec = load_record(job_dir)
@@ -115,16 +105,8 @@ class JobManager:
 
     async def ensure_client(self) -> Client:
         """The Dask client, made anew if the scheduler was lost and the old one gave up."""
-        assert self.client is not None, "JobManager.start() was not awaited"
-        if self.client.status in ("closed", "closing", "failed") and self.settings.scheduler:
-            try:
-                self.client = await Client(self.settings.scheduler, asynchronous=True, timeout=10)
-            except OSError as e:
-                raise ConflictError(
-                    f"the Dask scheduler {self.settings.scheduler} cannot be reached ({e}); "
-                    "start the job again once it is back"
-                ) from None
-            await warm_workers(self.client)
+        assert self.dask is not None, "JobManager.start() was not awaited"
+        self.client = await self.dask.reconnect()
         return self.client
 
     async def close(self) -> None:
@@ -132,10 +114,8 @@ class JobManager:
         for task in runs:
             task.cancel()
         await asyncio.gather(*runs, return_exceptions=True)
-        if self.client is not None:
-            await self.client.close()
-        if self.cluster is not None:
-            await self.cluster.close()
+        if self.dask is not None:
+            await self.dask.close()
 
     # -- jobs ---------------------------------------------------------------------------------
     def job_dir(self, job_id: str) -> Path:

@@ -18,12 +18,13 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
-from distributed import Client, LocalCluster
 from numpy.typing import NDArray
 
+from service.cluster import cluster_kind, open_cluster
 from service.inprocess import run_in_process
-from service.orchestrator import ProgressFn, run_job, warm_workers
+from service.orchestrator import ProgressFn, run_job
 from service.previews import PREVIEW_INPUTS, PREVIEWS, render
+from service.settings import Settings
 from service.timings import Timings
 from storage.datasets import Dataset
 from storage.imageio import encode_png
@@ -134,32 +135,28 @@ def _check_same_inputs(store: JobStore, ds: Dataset, spec: JobSpec, out: Path) -
         raise differ("the masks")
 
 
-async def _run(out: Path, scheduler: str, workers: int, on_progress: ProgressFn | None) -> JobRecord:
-    if scheduler:
-        async with Client(scheduler, asynchronous=True) as client:
-            await warm_workers(client)
-            return await run_job(client, out, on_progress=on_progress)
-    async with (
-        LocalCluster(
-            n_workers=workers,
-            threads_per_worker=1,
-            processes=True,
-            host="127.0.0.1",
-            dashboard_address=None,
-            asynchronous=True,
-        ) as cluster,
-        Client(cluster, asynchronous=True) as client,
-    ):
-        await warm_workers(client)
-        return await run_job(client, out, on_progress=on_progress)
+def cluster_settings(scheduler: str = "", workers: int = 2, cluster: str = "") -> Settings:
+    """The ``MAXFS_*`` settings with the cluster the command line chose (see :mod:`service.cluster`)."""
+    return Settings().model_copy(update={"scheduler": scheduler, "workers": workers, "cluster": cluster})
+
+
+async def _run(out: Path, settings: Settings, on_progress: ProgressFn | None) -> JobRecord:
+    # SLURM worker jobs write their logs beside the results (a shared filesystem either way)
+    async with open_cluster(settings, log_dir=out / "slurm-logs") as dc:
+        return await run_job(dc.client, out, on_progress=on_progress)
 
 
 def run_store(
-    out: Path, *, scheduler: str = "", workers: int = 2, on_progress: ProgressFn | None = None
+    out: Path,
+    *,
+    scheduler: str = "",
+    workers: int = 2,
+    cluster: str = "",
+    on_progress: ProgressFn | None = None,
 ) -> JobRecord:
     """Run every unfinished tile of the store at ``out`` on a Dask cluster (the embedded
-    one, or ``scheduler``); write previews and derived results when done."""
-    rec = asyncio.run(_run(Path(out), scheduler, workers, on_progress))
+    one, SLURM worker jobs, or ``scheduler``); write previews and derived results when done."""
+    rec = asyncio.run(_run(Path(out), cluster_settings(scheduler, workers, cluster), on_progress))
     if rec.state is JobState.DONE:
         finish(Path(out))
     return rec
@@ -184,6 +181,7 @@ def run_folder(
     overwrite: bool = False,
     scheduler: str = "",
     workers: int = 2,
+    cluster: str = "",
     in_process_bytes: int = 2 << 30,
     on_note: Callable[[str], None] | None = None,
     on_progress: ProgressFn | None = None,
@@ -191,16 +189,18 @@ def run_folder(
 ) -> tuple[JobStore, JobRecord]:
     """``maxfs run``: ingest ``ds`` into ``out`` (or resume it) and solve every tile.
 
-    With no ``scheduler`` and a stack of at most ``in_process_bytes``, tiles run on
-    ``workers`` threads in this process (:mod:`service.inprocess`) with the images held in
-    memory and written to the store in the background; otherwise on a Dask cluster, the
-    embedded one or ``scheduler``. A finished job is not run again: it costs a look at
+    On the ``local`` cluster (no ``scheduler``, ``cluster`` unset or "local") and a stack of at
+    most ``in_process_bytes``, tiles run on ``workers`` threads in this process
+    (:mod:`service.inprocess`) with the images held in memory and written to the store in the
+    background; otherwise on a Dask cluster (:mod:`service.cluster`): the embedded one, SLURM
+    worker jobs, or ``scheduler``. A finished job is not run again: it costs a look at
     its done markers. Results are bit-identical either way.
     """
     out = Path(out)
     tm = timings or Timings()
     stack_bytes = ds.k * ds.height * ds.width * (ds.channels or 1) * np.dtype(ds.dtype).itemsize
-    in_process = not scheduler and stack_bytes <= in_process_bytes
+    settings = cluster_settings(scheduler, workers, cluster)
+    in_process = cluster_kind(settings) == "local" and stack_bytes <= in_process_bytes
     with tm.phase("open or create the store"):
         store, note = ingest(ds, out, params, overwrite=overwrite, copy_images=not in_process)
     if note and on_note:
@@ -227,7 +227,7 @@ def run_folder(
             )
         else:
             with tm.phase("cluster run (start, tiles, stop)"):
-                rec = asyncio.run(_run(out, scheduler, workers, on_progress))
+                rec = asyncio.run(_run(out, settings, on_progress))
     except BaseException:
         stop.set()
         raise

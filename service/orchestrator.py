@@ -17,6 +17,7 @@ from pathlib import Path
 
 from distributed import Client, as_completed
 
+from service.cluster import check_store_visible
 from storage.layout import JobStore
 from storage.params import JobParams
 from storage.records import JobRecord, JobState, load_record, save_record
@@ -95,6 +96,8 @@ async def run_job(
     save()
     futures: dict[str, object] = {}
     try:
+        # a worker must see this very store (a shared filesystem) before any task reads it
+        await check_store_visible(client, job_dir, rec.id)
         params = store.params
         if params.eps is None:
             key = f"maxfs-eps-{rec.id}-{uuid.uuid4().hex[:8]}"

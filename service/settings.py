@@ -22,12 +22,43 @@ class Settings(BaseSettings):
 
     #: Where job stores live (one folder per job under ``jobs/``) and the token file.
     data_dir: Path = Path("maxfs-data")
+    #: Where tiles run (:mod:`service.cluster`): "local" (embedded LocalCluster), "slurm" (worker
+    #: jobs through dask-jobqueue) or "address" (``scheduler``); empty = "address" when
+    #: ``scheduler`` is set, else "local".
+    cluster: str = ""
     #: Address of an external Dask scheduler; empty = start an embedded LocalCluster.
     scheduler: str = ""
     #: Worker processes of the embedded cluster (one thread each).
     workers: int = max(1, min(4, os.cpu_count() or 1))
     #: Dask dashboard of the embedded cluster: "" = off; e.g. "127.0.0.1:8787" (loopback only by default).
     dashboard: str = ""
+    #: SLURM worker jobs (``cluster="slurm"``): partition and account ("" = SLURM's defaults).
+    slurm_partition: str = ""
+    slurm_account: str = ""
+    #: Cores per worker job: that many single-threaded worker processes.
+    slurm_cores: int = 1
+    #: Memory per worker job, e.g. "6GiB"; "" = 1.5 GiB per core.
+    slurm_memory: str = ""
+    #: Time limit of a worker job (SLURM format); workers retire a little before it.
+    slurm_walltime: str = "01:00:00"
+    #: Adaptive scaling between this many worker jobs (the minimum stays while idle).
+    slurm_min_jobs: int = 0
+    slurm_max_jobs: int = 4
+    #: Seconds a worker job may idle before it is released.
+    slurm_idle_timeout: float = 60.0
+    #: Extra ``#SBATCH`` options, ";"-separated, e.g. "--qos=short;--constraint=avx2".
+    slurm_sbatch: str = ""
+    #: Shell lines run in a worker job before the worker starts, ";"-separated (e.g. "module load gcc").
+    slurm_prologue: str = ""
+    #: Python of the worker jobs; "" = this process's (the same installed package).
+    slurm_python: str = ""
+    #: Worker scratch folder on the node (e.g. "/tmp" or "$TMPDIR"); "" = Dask's default.
+    slurm_local_directory: str = ""
+    #: Worker job output and TLS key files, on the shared filesystem; "" = DATA_DIR/slurm-logs
+    #: (``maxfs serve``) or OUT/slurm-logs (``maxfs run``).
+    slurm_log_directory: str = ""
+    #: Network interface of the scheduler and workers, e.g. "ib0" ("" = Dask's choice).
+    slurm_interface: str = ""
     #: HTTP bind address and port for ``maxfs serve`` (loopback by default).
     host: str = "127.0.0.1"
     port: int = 8000

@@ -1,0 +1,150 @@
+"""The one Dask client factory (service.cluster): kinds, SLURM settings, and the embedded
+cluster's TLS: no local process gets in through Dask, no HTTP endpoint unless asked."""
+
+from __future__ import annotations
+
+import asyncio
+import socket
+from dataclasses import dataclass
+from pathlib import Path
+
+import httpx
+import psutil
+import pytest
+from distributed.comm import connect
+from distributed.security import Security
+
+from service.cluster import cluster_kind, open_cluster, slurm_job_kwargs, walltime_seconds, worker_lifetime
+from service.settings import Settings
+from tests.procs import Server, free_port
+from worker.errors import InvalidInputError
+
+
+@dataclass(frozen=True)
+class KindCase:
+    cluster: str
+    scheduler: str
+    kind: str | None  # None: refused
+
+
+@pytest.mark.parametrize(
+    "case",
+    [
+        KindCase("", "", "local"),
+        KindCase("", "tls://10.0.0.5:8786", "address"),  # MAXFS_SCHEDULER alone, as before
+        KindCase("local", "tls://10.0.0.5:8786", "local"),  # --cluster local wins
+        KindCase("SLURM", "", "slurm"),
+        KindCase("address", "tcp://h:8786", "address"),
+        KindCase("address", "", None),
+        KindCase("kubernetes", "", None),
+    ],
+)
+def test_cluster_kind(case: KindCase) -> None:
+    s = Settings(cluster=case.cluster, scheduler=case.scheduler)
+    if case.kind is None:
+        with pytest.raises(InvalidInputError):
+            cluster_kind(s)
+    else:
+        assert cluster_kind(s) == case.kind
+
+
+@pytest.mark.parametrize(
+    ("walltime", "seconds", "lifetime"),
+    [
+        ("30", 1800, (1620, 45)),
+        ("01:00:00", 3600, (3300, 75)),
+        ("1-00:00:00", 86400, (86100, 75)),
+        ("2-12", 216000, (215700, 75)),
+        ("1:30", 90, None),  # too short to retire early
+    ],
+)
+def test_walltime_and_worker_lifetime(walltime: str, seconds: int, lifetime: tuple | None) -> None:
+    assert walltime_seconds(walltime) == seconds
+    assert worker_lifetime(walltime) == lifetime
+
+
+def test_slurm_job_settings_map_to_dask_jobqueue(tmp_path: Path) -> None:
+    s = Settings(
+        slurm_partition="gpu",
+        slurm_account="lab",
+        slurm_cores=4,
+        slurm_sbatch="--qos=short; --constraint=avx2",
+        slurm_prologue="module load gcc",
+        slurm_local_directory="$TMPDIR",
+    )
+    kw = slurm_job_kwargs(s, tmp_path)
+    assert (kw["queue"], kw["account"], kw["cores"], kw["processes"]) == ("gpu", "lab", 4, 4)
+    assert kw["memory"] == "6GiB"  # 1.5 GiB per single-threaded worker
+    assert kw["job_extra_directives"] == ["--qos=short", "--constraint=avx2"]
+    assert kw["job_script_prologue"][-1] == "module load gcc"
+    assert kw["local_directory"] == "$TMPDIR" and kw["log_directory"] == str(tmp_path)
+    assert kw["worker_extra_args"][:2] == ["--lifetime", "3300s"]
+    with pytest.raises(InvalidInputError, match="MIN_JOBS"):
+        slurm_job_kwargs(Settings(slurm_min_jobs=3, slurm_max_jobs=2), tmp_path)
+    with pytest.raises(InvalidInputError, match="not a SLURM time limit"):
+        slurm_job_kwargs(Settings(slurm_walltime="1h"), tmp_path)
+
+
+def _listening_ports(pid: int) -> set[int]:
+    root = psutil.Process(pid)
+    pids = {root.pid} | {p.pid for p in root.children(recursive=True)}
+    conns = psutil.net_connections(kind="inet")
+    return {c.laddr.port for c in conns if c.status == "LISTEN" and c.pid in pids}
+
+
+def _speaks_http(port: int) -> bool:
+    with socket.create_connection(("127.0.0.1", port), timeout=5) as s:
+        s.settimeout(5)
+        s.sendall(b"GET /health HTTP/1.0\r\nHost: 127.0.0.1\r\n\r\n")
+        try:
+            return s.recv(5) == b"HTTP/"
+        except OSError:
+            return False
+
+
+async def _dask_answers(address: str, **connection_args) -> bool:
+    """Whether a Dask server at ``address`` answers an ``identity`` call from this client."""
+    try:  # bounded twice: connect's own timeout does not cover a peer that never answers the handshake
+        comm = await asyncio.wait_for(connect(address, timeout=5, **connection_args), 10)
+    except Exception:
+        return False
+    try:
+        await comm.write({"op": "identity", "reply": True})
+        reply = await asyncio.wait_for(comm.read(), 5)
+        return isinstance(reply, dict) and "type" in reply
+    except Exception:
+        return False
+    finally:
+        comm.abort()
+
+
+def test_embedded_cluster_refuses_other_local_clients_and_serves_no_http(tmp_path: Path) -> None:
+    """Issue #10: a local process must not reach the server's scheduler or workers (they run
+    any code sent to them) nor Dask's info pages."""
+    server = Server(tmp_path / "data", "", tmp_path, workers=1)
+    try:
+        dask_ports = _listening_ports(server.proc.pid) - {server.port}
+        assert len(dask_ports) >= 3, dask_ports  # scheduler, nanny, worker
+        foreign = Security.temporary().get_connection_args("client")
+        for port in sorted(dask_ports):
+            assert not _speaks_http(port), f"port {port} answers HTTP"
+            assert not asyncio.run(_dask_answers(f"tcp://127.0.0.1:{port}")), f"plain client got in on {port}"
+            assert not asyncio.run(_dask_answers(f"tls://127.0.0.1:{port}", connection_args=foreign)), (
+                f"a client with another certificate got in on {port}"
+            )
+        assert _speaks_http(server.port)  # the server itself, of course
+    finally:
+        server.kill()
+
+
+def test_embedded_cluster_serves_a_dashboard_only_when_asked() -> None:
+    port = free_port()
+
+    async def go() -> int:
+        async with open_cluster(Settings(workers=1, dashboard=f"127.0.0.1:{port}")) as dc:
+            assert dc.scheduler_address.startswith("tls://127.0.0.1:")
+            assert await dc.client.submit(sum, [1, 2], pure=False) == 3  # our own client is let in
+            async with httpx.AsyncClient() as h:
+                return (await h.get(f"http://127.0.0.1:{port}/health")).status_code
+
+    assert asyncio.run(go()) == 200
