@@ -80,6 +80,20 @@ class CreateJob(BaseModel):
     box_factor: float = Field(10.0, description="box on n as a multiple of the brightest value (>= 1)")
     max_nodes: int = Field(200_000, description="exact solver's node budget per pixel (1 to 1e9)")
     milp_time_limit: float = Field(30.0, description="MILP seconds per pixel (0 to 3600)")
+    model: Literal["robust", "paper"] = Field(
+        "robust", description="robust (default) or paper (Yu, Seo, Lee 2010 as published); see worker.problem"
+    )
+    response: float | Literal["auto"] | None = Field(
+        None, description="g of I = (L.n)^g, or auto (default of robust; paper: 1)"
+    )
+    eps_rel: float | None = Field(None, description="tolerance eps + eps_rel * I (default 0)")
+    drop_bright: float | None = Field(
+        None, description="share of each pixel's brightest candidates that are outliers (robust: 0.3)"
+    )
+    dequantize: bool | None = Field(None, description="integer input: read v > 0 as v + 0.5 (robust: true)")
+    fallback: bool | None = Field(
+        None, description="least squares where Max-FS gives no normal (robust: true)"
+    )
 
 
 def status_body(
@@ -238,6 +252,12 @@ class JobRoutes:
             box_factor=req.box_factor,
             max_nodes=req.max_nodes,
             milp_time_limit=req.milp_time_limit,
+            model=req.model,
+            response=req.response,
+            eps_rel=req.eps_rel,
+            drop_bright=req.drop_bright,
+            dequantize=req.dequantize,
+            fallback=req.fallback,
         )
         rec = self.m.create(spec, params, _user(request))
         body = self._body(request, rec.id)

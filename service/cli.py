@@ -42,6 +42,38 @@ def _solver_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--box-factor", type=float, default=None, help="box on n, x the brightest value (10)")
     p.add_argument("--max-nodes", type=int, default=None, help="exact solver's node budget per pixel")
     p.add_argument("--milp-time-limit", type=float, default=None, help="MILP seconds per pixel (30)")
+    p.add_argument(
+        "--model",
+        choices=["robust", "paper"],
+        default="robust",
+        help="robust (default: dequantised input, response and eps estimated, brightest 30%% of each "
+        "pixel's images rejected, a fallback fit) or paper (Yu, Seo, Lee 2010 as published)",
+    )
+    p.add_argument("--response", type=_response, default=None, help="g of I = (L.n)^g, or auto")
+    p.add_argument("--eps-rel", type=float, default=None, help="tolerance eps + eps_rel * I (default 0)")
+    p.add_argument("--drop-bright", type=float, default=None, help="share of brightest images rejected")
+    p.add_argument(
+        "--dequantize",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="integer input: read v > 0 as v + 0.5 (the model decides when unset)",
+    )
+    p.add_argument(
+        "--fallback",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="least squares where Max-FS gives no normal (the model decides when unset)",
+    )
+
+
+def _response(value: str) -> float | str:
+    if value == "auto":
+        return value
+    try:
+        return float(value)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"response must be a number or 'auto', got {value!r}") from None
+
 
 
 def _tile(value: str) -> int | str:
@@ -81,7 +113,19 @@ def _server_args(p: argparse.ArgumentParser) -> None:
 def _params(args: argparse.Namespace) -> dict[str, Any]:
     extra = {
         k: getattr(args, k)
-        for k in ("shadow", "saturation", "box_factor", "max_nodes", "milp_time_limit")
+        for k in (
+            "shadow",
+            "saturation",
+            "box_factor",
+            "max_nodes",
+            "milp_time_limit",
+            "model",
+            "response",
+            "eps_rel",
+            "drop_bright",
+            "dequantize",
+            "fallback",
+        )
         if getattr(args, k, None) is not None
     }
     return {"eps": args.eps, "solver": args.solver, "tile": args.tile} | extra

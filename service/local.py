@@ -8,7 +8,6 @@ ones make every tile count as unfinished (their done markers no longer match).
 from __future__ import annotations
 
 import asyncio
-import dataclasses
 import json
 import shutil
 import threading
@@ -63,7 +62,7 @@ def ingest(
         store = JobStore.open(out)
         _check_same_inputs(store, ds, spec, out)
         old = store.params
-        comparable = dataclasses.replace(old, eps=None) if params.eps is None else old
+        comparable = old.unresolved() if params.eps is None else old
         if comparable != params:
             store.set_params(params)
             note = f"parameters differ from the earlier run in {out}; every tile will be recomputed"

@@ -22,6 +22,7 @@ from storage.layout import JobStore
 from storage.params import JobParams
 from storage.records import JobRecord, JobState, load_record, save_record
 from worker.errors import JobCancelledError
+from worker.noise import Estimate
 from worker.problem import check_options
 from worker.task import TileOutcome, estimate_store_eps, run_tile, warm_up
 
@@ -49,11 +50,11 @@ class RunCounter:
         rec.pixel_rate = self.pixels / max(time.monotonic() - self.t0, 1e-9)
 
 
-def resolve_eps(store: JobStore, eps: float) -> JobParams:
-    """Record an estimated eps in the store's parameters, after checking it fits the others
-    (e.g. a saturation given by hand)."""
+def resolve_eps(store: JobStore, eps: float | Estimate) -> JobParams:
+    """Record an estimated eps (and response: an :class:`~worker.noise.Estimate`) in the
+    store's parameters, after checking it fits the others (e.g. a saturation given by hand)."""
     params = store.params
-    check_options(eps=eps, shadow=params.shadow, saturation=params.saturation)
+    check_options(eps=getattr(eps, "eps", eps), shadow=params.shadow, saturation=params.saturation)
     params = params.with_eps(eps)
     store.set_params(params)
     return params

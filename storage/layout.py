@@ -13,6 +13,7 @@ Layout (root group; ``T`` = tile edge, chunks are tile-aligned)::
     inliers       (k, H, W)       bool                  chunks (k, T, T)
     inlier_count  (H, W)          uint16
     optimal       (H, W)          bool
+    source        (H, W)          uint8                 how the normal was obtained (worker.solve.Source)
     done          (ny, nx)        int32                 chunks (1, 1)
     tile_stats    (ny, nx, 3)     int64                 chunks (1, 1, 3)  active, solved, certified pixels
     input_digests (k + 1, 32)     uint8                 chunks (1, 32)    BLAKE2b of image i; row k: mask
@@ -110,7 +111,7 @@ DTYPES = ("uint8", "uint16", "float32")
 RUNS_LOG = "maxfs-runs.log"
 CANCEL_FLAG = "maxfs-cancel"
 #: Output arrays a client may fetch.
-OUTPUTS = ("normal", "albedo", "albedo_rgb", "inliers", "inlier_count", "optimal", "mask", "depth")
+OUTPUTS = ("normal", "albedo", "albedo_rgb", "inliers", "inlier_count", "optimal", "source", "mask", "depth")
 #: Zarr v3 ``dimension_names`` of every array (``images`` gets ``channel`` last for colour input), so
 #: ``xarray.open_zarr`` reads a store as a Dataset with named dimensions.
 DIMS: dict[str, tuple[str, ...]] = {
@@ -125,6 +126,7 @@ DIMS: dict[str, tuple[str, ...]] = {
     "inliers": ("image", "y", "x"),
     "inlier_count": ("y", "x"),
     "optimal": ("y", "x"),
+    "source": ("y", "x"),
     "depth": ("y", "x"),
     "done": ("tile_y", "tile_x"),
     "tile_stats": ("tile_y", "tile_x", "tile_count"),
@@ -143,6 +145,11 @@ DESCRIPTIONS: dict[str, dict[str, str]] = {
     "inliers": {"long_name": "image i obeys the Lambertian law at this pixel (the optimal inlier set)"},
     "inlier_count": {"long_name": "number of inlier images (the Max-FS optimum)", "units": "images"},
     "optimal": {"long_name": "the optimum is proved"},
+    "source": {
+        "long_name": "how the normal was obtained: 0 outside the mask, 1 Max-FS optimum proved, "
+        "2 Max-FS best found within the budget, 3 least-squares fit (l2 solver or fallback), "
+        "4 undetermined (no normal)"
+    },
     "done": {"long_name": "per-tile marker: equal to the parameter token when the tile is finished"},
     "tile_stats": {"long_name": "per tile: active, solved and certified pixels"},
     "input_digests": {"long_name": "BLAKE2b-256 of image i; last row: the mask"},
@@ -207,7 +214,7 @@ class JobSpec:
     def store_nbytes(self) -> int:
         """Upper bound of the job's size on disk (images and outputs, uncompressed)."""
         C = self.channels or 1
-        per_pixel = 12 + 4 + (4 * C if self.channels else 0) + self.k + 2 + 1 + 1
+        per_pixel = 12 + 4 + (4 * C if self.channels else 0) + self.k + 2 + 1 + 1 + 1
         return self.k * self.image_nbytes + self.pixels * per_pixel
 
     def auto_tile(self, memory: int) -> int:
@@ -340,6 +347,9 @@ class JobStore:
             dimension_names=DIMS["optimal"],
         )
         g.create_array(
+            "source", shape=(H, W), chunks=tc, dtype="uint8", fill_value=0, dimension_names=DIMS["source"]
+        )
+        g.create_array(
             "done",
             shape=grid_shape(H, W, T),
             chunks=(1, 1),
@@ -415,7 +425,9 @@ class JobStore:
     @property
     def observation_model(self) -> ObservationModel:
         s = self.spec
-        return ObservationModel.for_input(np.dtype(s.dtype), s.k, s.channels, s.intensities)
+        return ObservationModel.for_input(
+            np.dtype(s.dtype), s.k, s.channels, s.intensities, dequantize=self.params.dequantize
+        )
 
     # -- inputs -------------------------------------------------------------------------------
     def check_index(self, i: int) -> None:
@@ -572,6 +584,8 @@ class JobStore:
         g["inliers"][:, ys, xs] = r.inliers
         g["inlier_count"][ys, xs] = r.inlier_count
         g["optimal"][ys, xs] = r.optimal
+        if r.source is not None and "source" in g:
+            g["source"][ys, xs] = r.source
         g["tile_stats"][t.ty, t.tx] = np.asarray(stats, dtype=np.int64)
         g["done"][t.ty, t.tx] = token
 

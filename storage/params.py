@@ -8,7 +8,8 @@ from dataclasses import asdict, dataclass, replace
 from typing import Any
 
 from worker.errors import InvalidInputError
-from worker.problem import DEFAULT_BOX_FACTOR, check_options
+from worker.noise import Estimate
+from worker.problem import DEFAULT_BOX_FACTOR, MODEL_DEFAULTS, Model, check_options
 from worker.solve import DEFAULT_MAX_NODES, DEFAULT_MILP_TIME_LIMIT, Solver
 from worker.tiles import DEFAULT_TILE
 
@@ -18,7 +19,11 @@ class JobParams:
     """Everything that changes a tile's result.
 
     ``eps`` is the number used; ``eps_request`` is what the user asked for
-    (a number, or ``"auto"``, resolved before any tile runs).
+    (a number, or ``"auto"``, resolved before any tile runs). ``response`` and
+    ``response_request`` likewise; both are resolved together, so ``eps`` is None
+    until everything ``"auto"`` is (see :meth:`with_eps`). The model's options
+    (``model`` and the five after it) are stored resolved: the defaults of
+    :data:`worker.problem.MODEL_DEFAULTS` are filled in by :meth:`build`.
     """
 
     solver: str = Solver.EXACT.value
@@ -30,6 +35,13 @@ class JobParams:
     tile: int = DEFAULT_TILE
     max_nodes: int = DEFAULT_MAX_NODES
     milp_time_limit: float = DEFAULT_MILP_TIME_LIMIT
+    model: str = Model.PAPER.value
+    response: float | None = 1.0
+    response_request: float | str = 1.0
+    eps_rel: float = 0.0
+    drop_bright: float = 0.0
+    dequantize: bool = False
+    fallback: bool = False
 
     @classmethod
     def build(
@@ -43,6 +55,12 @@ class JobParams:
         box_factor: float = DEFAULT_BOX_FACTOR,
         max_nodes: int = DEFAULT_MAX_NODES,
         milp_time_limit: float = DEFAULT_MILP_TIME_LIMIT,
+        model: str = Model.PAPER.value,
+        response: float | str | None = None,
+        eps_rel: float | None = None,
+        drop_bright: float | None = None,
+        dequantize: bool | None = None,
+        fallback: bool | None = None,
     ) -> JobParams:
         """Validate user-facing parameters (:func:`worker.problem.check_options`, the one
         validator the library, the CLI and HTTP share) and build them."""
@@ -66,10 +84,21 @@ class JobParams:
             box_factor=box_factor,
             max_nodes=max_nodes,
             milp_time_limit=milp_time_limit,
+            model=model,
+            eps_rel=eps_rel,
+            response=response,
+            drop_bright=drop_bright,
         )
+        for name, flag in (("dequantize", dequantize), ("fallback", fallback)):
+            if flag is not None and not isinstance(flag, bool):
+                raise InvalidInputError(f"{name} must be true or false, got {flag!r}")
+        d = MODEL_DEFAULTS[Model(model)]
+        resp = d.response if response is None else response
+        resp = resp if resp == "auto" else float(resp)
+        unresolved = eps == "auto" or resp == "auto"
         return cls(
             solver=solver,
-            eps=None if eps == "auto" else float(eps),
+            eps=None if unresolved else float(eps),
             eps_request=eps if eps == "auto" else float(eps),
             shadow=None if shadow is None else float(shadow),
             saturation=None if saturation is None else float(saturation),
@@ -77,10 +106,43 @@ class JobParams:
             tile=int(tile),
             max_nodes=int(max_nodes),
             milp_time_limit=float(milp_time_limit),
+            model=Model(model).value,
+            response=None if resp == "auto" else resp,
+            response_request=resp,
+            eps_rel=float(d.eps_rel if eps_rel is None else eps_rel),
+            drop_bright=float(d.drop_bright if drop_bright is None else drop_bright),
+            dequantize=bool(d.dequantize if dequantize is None else dequantize),
+            fallback=bool(d.fallback if fallback is None else fallback),
         )
 
-    def with_eps(self, eps: float) -> JobParams:
-        return replace(self, eps=float(eps))
+    def with_eps(self, eps: float | Estimate) -> JobParams:
+        """Resolved parameters: an :class:`~worker.noise.Estimate` sets eps and the
+        response; a number sets eps (the response must not be ``"auto"`` then)."""
+        if isinstance(eps, Estimate):
+            return replace(self, eps=float(eps.eps), response=float(eps.response))
+        if self.response is None and self.response_request == "auto":
+            raise InvalidInputError("the response is 'auto': resolve it with an Estimate")
+        resp = self.response if self.response is not None else float(self.response_request)
+        return replace(self, eps=float(eps), response=resp)
+
+    def unresolved(self) -> JobParams:
+        """These parameters as :meth:`build` made them, before anything ``"auto"`` was resolved."""
+        auto = self.eps_request == "auto" or self.response_request == "auto"
+        return replace(
+            self,
+            eps=None if auto else self.eps,
+            response=None if self.response_request == "auto" else self.response,
+        )
+
+    def threshold_options(self) -> dict[str, Any]:
+        """The model options of :func:`worker.problem.make_thresholds` (resolved response)."""
+        return {
+            "model": self.model,
+            "eps_rel": self.eps_rel,
+            "response": 1.0 if self.response is None else self.response,
+            "drop_bright": self.drop_bright,
+            "fallback": self.fallback,
+        }
 
     def to_json(self) -> dict[str, Any]:
         return asdict(self)

@@ -30,7 +30,8 @@ K, SIZE, TILE, EPS = 12, 64, 16, 2.0
 def scene() -> tuple[np.ndarray, np.ndarray, Solution]:
     sc = synthetic.bump_scene(K, SIZE, seed=5)
     images = sc.images.astype(np.uint8)
-    return images, sc.lights, solve(images, sc.lights, eps=EPS, solver="milp", tile=TILE)
+    # the HTTP default model is "robust"; the library's default is "paper"
+    return images, sc.lights, solve(images, sc.lights, eps=EPS, solver="milp", tile=TILE, model="robust")
 
 
 def _create(c: MaxfsClient, lights: np.ndarray) -> str:

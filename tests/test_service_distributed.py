@@ -42,8 +42,9 @@ def data() -> Data:
         images,
         sc.lights,
         sc.mask,
-        solve(images, sc.lights, sc.mask, eps="auto", tile=32),
-        solve(images, sc.lights, sc.mask, eps=2.0, solver="milp", tile=16),
+        # the HTTP default model is "robust"; the library's default is "paper"
+        solve(images, sc.lights, sc.mask, eps="auto", tile=32, model="robust"),
+        solve(images, sc.lights, sc.mask, eps=2.0, solver="milp", tile=16, model="robust"),
     )
 
 

@@ -10,6 +10,10 @@ cut off an optimum: ``Mp_i = U ||L_i||_1 - b_i``, ``Mm_i = a_i + U ||L_i||_1``.
 (The paper's ``M = 255 + eps`` is not valid for a box of +-255.) Unusable images
 get ``y_i`` fixed to 1 and free rows.
 
+The slab bounds ``a_i, b_i`` are given per observation, exactly as the exact solver
+takes them (``lo, hi`` of :func:`worker.problem.slabs`, whatever the tolerance model),
+so both solve the identical problem; a number ``eps`` stands for the paper's slabs.
+
 One ``Highs`` object is built per batch and re-used: each pixel changes row
 bounds, column bounds and the big-M coefficients only. HiGHS objects cannot be
 pickled, so build them inside the task that uses them. ``threads=1`` everywhere.
@@ -23,7 +27,11 @@ import highspy
 import numpy as np
 from numpy.typing import NDArray
 
+from worker.cancel import checkpoint
 from worker.problem import box_halfwidth, slabs
+
+#: Slab bounds of a pixel batch: ``(lo, hi)``, or ``eps`` for the paper's slabs.
+Bounds = float | tuple[NDArray[np.float64], NDArray[np.float64]]
 
 #: Re-check tolerance for claimed inliers, relative to the pixel's largest b.
 #: HiGHS accepts y_i within integrality tolerance of 0, which lets a big-M row
@@ -86,12 +94,16 @@ class MilpSolver:
         self.inf = inf
 
     def solve_pixel(
-        self, intensities: NDArray[np.float64], valid: NDArray[np.bool_], eps: float, box_factor: float
+        self, intensities: NDArray[np.float64], valid: NDArray[np.bool_], bounds: Bounds, box_factor: float
     ) -> tuple[NDArray[np.float64], int, bool]:
-        """Solve one pixel: returns (point n, claimed optimal count, finished)."""
+        """Solve one pixel: returns (point n, claimed optimal count, finished).
+
+        ``bounds`` is ``(a, b)`` of shape ``(k,)`` each (``intensities`` then only seed
+        the least-squares start), or ``eps`` for the paper's slabs of ``intensities``.
+        """
         h, k, L, inf = self.h, self.k, self.L, self.inf
         I = np.asarray(intensities, dtype=np.float64)
-        a, b = slabs(I, eps)
+        a, b = _bounds(I, bounds)
         U = box_halfwidth(b, valid, box_factor)
         h.changeColsBounds(3, np.arange(3, dtype=np.int32), np.full(3, -U), np.full(3, U))
         lo_y = np.where(valid, 0.0, 1.0)
@@ -123,9 +135,12 @@ class MilpSolver:
         return sol[:3].copy(), claimed, bool(finished)
 
     def solve_pixels(
-        self, I: NDArray[np.float64], valid: NDArray[np.bool_], eps: float, box_factor: float
+        self, I: NDArray[np.float64], valid: NDArray[np.bool_], bounds: Bounds, box_factor: float
     ) -> tuple[NDArray[np.float64], NDArray[np.bool_], NDArray[np.int32], NDArray[np.bool_], MilpStats]:
         """Solve ``(P, k)`` pixels: (point, inliers, count, certified, stats).
+
+        ``bounds`` is ``(lo, hi)`` of shape ``(P, k)`` each, or ``eps`` (the paper's
+        slabs of ``I``); see :meth:`solve_pixel`.
 
         ``count`` is the number of usable images that really lie in their slab at
         the returned point (tolerance :data:`RECHECK_REL_TOL`); ``stats.claimed``
@@ -138,12 +153,15 @@ class MilpSolver:
         cert = np.ones(P, dtype=bool)
         capped = np.zeros(P, dtype=bool)
         claimed = np.zeros(P, dtype=np.int32)
+        lo, hi = _bounds(np.asarray(I, dtype=np.float64), bounds)
         for p in range(P):
+            if p:
+                checkpoint()  # a tile task notices a cancel between pixels (worker.cancel)
             v = valid[p]
             if v.sum() < 3:
                 continue
-            n, c, done = self.solve_pixel(I[p], v, eps, box_factor)
-            a, b = slabs(I[p], eps)
+            a, b = lo[p], hi[p]
+            n, c, done = self.solve_pixel(I[p], v, (a, b), box_factor)
             tol = RECHECK_REL_TOL * b[v].max()
             d = self.L @ n
             inl[p] = v & (d >= a - tol) & (d <= b + tol)
@@ -153,6 +171,15 @@ class MilpSolver:
             cert[p] = done
             capped[p] = not done
         return point, inl, count, cert, MilpStats(capped, claimed)
+
+
+def _bounds(I: NDArray[np.float64], bounds: Bounds) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    if isinstance(bounds, tuple):
+        a, b = (np.asarray(x, dtype=np.float64) for x in bounds)
+        if a.shape != I.shape or b.shape != I.shape:
+            raise ValueError(f"slab bounds have shapes {a.shape}, {b.shape}; the intensities {I.shape}")
+        return a, b
+    return slabs(I, float(bounds))
 
 
 def _solution(values: NDArray[np.float64]) -> highspy.HighsSolution:

@@ -14,11 +14,32 @@ Two kinds of image are *outliers by definition*, never candidates:
   ``shadow = eps`` removes every slab whose lower side is clamped to ``eps``
   entirely by the clamp.
 * saturated: ``I_i >= saturation`` (the sensor's maximum); the true value is unknown.
+
+**Models.** ``paper`` is the formulation above, exactly. ``robust`` (the CLI and HTTP
+default) generalises it for real captures, and every part stays a set of k slabs
+``lo_i <= L_i . n <= hi_i``, so the optimum is still exact and checkable against the MILP:
+
+* tolerance growing with intensity: ``|I_i - s_i| <= t_i``, ``t_i = eps + eps_rel I_i``;
+* a camera/BRDF response ``I = s^g`` (``response`` g, estimated per job, 1 = Lambertian):
+  the condition ``|I_i - (L_i . n)^g| <= t_i`` is the slab
+  ``max(I_i - t_i, m)^(1/g) <= L_i . n <= (I_i + t_i)^(1/g)`` (the power is monotone), and
+  the refit is least squares on ``I^(1/g)``;
+* shadows follow the noise: ``shadow = eps / 3`` (one noise sigma when eps is 3 sigma) and
+  the clamp ``m`` is the shadow threshold (the paper's is ``eps``);
+* at each pixel the brightest ``drop_bright`` share of the candidates (at least 3 are
+  kept) are outliers by definition: likely specular, and measured to help on every real
+  and synthetic object we have (see ``bench/accuracy.py``);
+* ``fallback``: a pixel with fewer than 3 candidates (or rank-deficient inliers) gets the
+  least-squares fit on its non-zero, unsaturated observations instead of no normal.
+
+Dequantisation of integer input is part of the observation model
+(:mod:`worker.observations`), the estimates of eps and g of :mod:`worker.noise`.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from enum import StrEnum
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -48,12 +69,59 @@ class Thresholds:
         saturated (outliers by definition). ``inf`` disables the check.
     box_factor
         Box half-width on ``n`` as a multiple of the pixel's largest ``b_i``.
+    eps_rel
+        Tolerance growth with intensity: ``t_i = eps + eps_rel * I_i``.
+    response
+        Exponent g of the response ``I = (L.n)^g`` (1 = Lambertian, the paper).
+    min_shading
+        Smallest ``L.n`` an inlier may have (before the response); None means ``eps``
+        (the paper's clamp ``a = max(I - eps, eps)``).
+    drop_bright
+        Share of each pixel's candidates, brightest first, that are outliers by definition.
+    fallback
+        Least squares on the non-zero unsaturated observations where Max-FS gives no normal.
     """
 
     eps: float
     shadow: float
     saturation: NDArray[np.float64]
     box_factor: float = DEFAULT_BOX_FACTOR
+    eps_rel: float = 0.0
+    response: float = 1.0
+    min_shading: float | None = None
+    drop_bright: float = 0.0
+    fallback: bool = False
+
+
+class Model(StrEnum):
+    """Formulations: ``paper`` (Yu, Seo, Lee 2010, as published) and ``robust``."""
+
+    PAPER = "paper"
+    ROBUST = "robust"
+
+
+@dataclass(frozen=True)
+class ModelDefaults:
+    """What a model sets for the options a caller leaves unset (None)."""
+
+    dequantize: bool  # integer input: add half a step to non-zero values (floors)
+    response: float | str  # g, or "auto" (estimated per job)
+    eps_rel: float
+    shadow_per_eps: float  # shadow = this * eps
+    drop_bright: float
+    fallback: bool
+    noise_by_intensity: bool  # eps=auto: noise where the model fits best (worker.noise)
+
+
+#: The defaults of each model; ``robust`` was chosen by measurement (bench/accuracy.py).
+MODEL_DEFAULTS = {
+    Model.PAPER: ModelDefaults(False, 1.0, 0.0, 1.0, 0.0, False, False),
+    Model.ROBUST: ModelDefaults(True, "auto", 0.0, 1.0 / 3.0, 0.3, True, True),
+}
+#: Range of the response exponent g (given or estimated).
+RESPONSE_RANGE = (0.2, 5.0)
+#: Largest share of candidates ``drop_bright`` may remove.
+MAX_DROP_BRIGHT = 0.9
 
 
 #: Largest per-pixel node budget of the exact solver (about an hour of one core per pixel).
@@ -86,6 +154,10 @@ def check_options(
     box_factor: float = DEFAULT_BOX_FACTOR,
     max_nodes: int | None = None,
     milp_time_limit: float | None = None,
+    model: str | None = None,
+    eps_rel: float | None = None,
+    response: float | str | None = None,
+    drop_bright: float | None = None,
 ) -> None:
     """The one validator of solver options, used by the library, the CLI and HTTP.
 
@@ -114,6 +186,18 @@ def check_options(
             raise InvalidInputError(f"max_nodes must be a whole number, got {max_nodes!r}")
         if not 1 <= max_nodes <= MAX_NODES_LIMIT:
             raise InvalidInputError(f"max_nodes must be between 1 and {MAX_NODES_LIMIT}, got {max_nodes}")
+    if model is not None and model not in tuple(Model):
+        raise InvalidInputError(f"unknown model {model!r}; choose one of {', '.join(Model)}")
+    if eps_rel is not None and not _finite_number("eps_rel", eps_rel) >= 0:
+        raise InvalidInputError(f"eps_rel must be a finite number >= 0, got {eps_rel!r}")
+    if response is not None and response != "auto":
+        lo_g, hi_g = RESPONSE_RANGE
+        if isinstance(response, str) or not lo_g <= _finite_number("response", response) <= hi_g:
+            raise InvalidInputError(
+                f"response must be 'auto' or a number between {lo_g:g} and {hi_g:g}, got {response!r}"
+            )
+    if drop_bright is not None and not 0 <= _finite_number("drop_bright", drop_bright) <= MAX_DROP_BRIGHT:
+        raise InvalidInputError(f"drop_bright must be between 0 and {MAX_DROP_BRIGHT:g}, got {drop_bright!r}")
     if milp_time_limit is not None:
         t = _finite_number("milp_time_limit", milp_time_limit)
         if not 0 < t <= MAX_MILP_TIME_LIMIT:
@@ -130,15 +214,49 @@ def make_thresholds(
     shadow: float | None = None,
     saturation: float | ArrayLike | None = None,
     box_factor: float = DEFAULT_BOX_FACTOR,
+    model: Model | str = Model.PAPER,
+    eps_rel: float | None = None,
+    response: float | None = None,
+    drop_bright: float | None = None,
+    fallback: bool | None = None,
 ) -> Thresholds:
-    """Validate (:func:`check_options`) and build :class:`Thresholds` (``shadow`` defaults to ``eps``)."""
+    """Validate (:func:`check_options`) and build :class:`Thresholds`.
+
+    Options left None take the ``model``'s defaults (:data:`MODEL_DEFAULTS`): ``shadow``
+    is ``eps`` (paper) or ``eps / 3`` (robust). ``response`` must be a number here
+    (estimate ``"auto"`` first, :func:`worker.noise.estimate_model`); None is 1.
+    """
+    d = MODEL_DEFAULTS[Model(model)] if model in tuple(Model) else None
     scalar_sat = saturation if saturation is None or np.ndim(saturation) == 0 else None
-    check_options(eps=eps, shadow=shadow, saturation=scalar_sat, box_factor=box_factor)
-    shadow_v = float(eps if shadow is None else shadow)
+    check_options(
+        eps=eps,
+        shadow=shadow,
+        saturation=scalar_sat,
+        box_factor=box_factor,
+        model=model,
+        eps_rel=eps_rel,
+        response=response,
+        drop_bright=drop_bright,
+    )
+    assert d is not None
+    if response == "auto":
+        raise InvalidInputError("estimate the response first (worker.noise.estimate_model)")
+    robust = Model(model) is Model.ROBUST
+    shadow_v = float(d.shadow_per_eps * eps if shadow is None else shadow)
     sat = saturation_vector(k, saturation)
     if np.any(sat <= shadow_v):
         raise InvalidInputError("saturation thresholds must be above the shadow threshold")
-    return Thresholds(float(eps), shadow_v, sat, float(box_factor))
+    return Thresholds(
+        float(eps),
+        shadow_v,
+        sat,
+        float(box_factor),
+        eps_rel=float(d.eps_rel if eps_rel is None else eps_rel),
+        response=float(1.0 if response is None else response),
+        min_shading=shadow_v if robust else None,
+        drop_bright=float(d.drop_bright if drop_bright is None else drop_bright),
+        fallback=bool(d.fallback if fallback is None else fallback),
+    )
 
 
 def saturation_vector(k: int, saturation: float | ArrayLike | None) -> NDArray[np.float64]:
@@ -164,10 +282,73 @@ def usable(images: NDArray[np.floating], th: Thresholds) -> NDArray[np.bool_]:
         return np.isfinite(images) & (images > th.shadow) & (images < sat)
 
 
-def slabs(intensities: NDArray[np.floating], eps: float) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Slab bounds ``a = max(I - eps, eps)``, ``b = I + eps`` (paper eq. 3)."""
+def slabs(
+    intensities: NDArray[np.floating], eps: float | Thresholds
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Slab bounds ``lo <= L.n <= hi`` of each observation, in the solver's units.
+
+    With a number: the paper's ``a = max(I - eps, eps)``, ``b = I + eps`` (eq. 3). With
+    :class:`Thresholds`: ``t = eps + eps_rel I``, ``a = max(I - t, min_shading)``,
+    ``b = I + t``, both raised to ``1 / response`` (see the module docstring); for the
+    paper's thresholds this is the same arithmetic, bit for bit.
+    """
     i = np.asarray(intensities, dtype=np.float64)
-    return np.maximum(i - eps, eps), i + eps
+    if not isinstance(eps, Thresholds):
+        return np.maximum(i - eps, eps), i + eps
+    th = eps
+    t = th.eps + th.eps_rel * i if th.eps_rel else th.eps
+    floor = th.eps if th.min_shading is None else th.min_shading
+    a, b = np.maximum(i - t, floor), i + t
+    if th.response != 1.0:
+        a, b = a ** (1.0 / th.response), b ** (1.0 / th.response)
+    return a, b
+
+
+def shading(intensities: NDArray[np.floating], th: Thresholds) -> NDArray[np.float64]:
+    """The value ``L.n`` should match: ``I^(1/response)`` (``I`` itself for response 1)."""
+    i = np.asarray(intensities, dtype=np.float64)
+    if th.response == 1.0:
+        return i
+    with np.errstate(invalid="ignore"):
+        return np.maximum(i, 0.0) ** (1.0 / th.response)
+
+
+def candidates(
+    intensities: NDArray[np.floating],
+    th: Thresholds,
+    outlier: NDArray[np.bool_] | None = None,
+    active: NDArray[np.bool_] | None = None,
+) -> NDArray[np.bool_]:
+    """``(P, k)`` observations that may be inliers: :func:`usable`, not ``outlier``, of an
+    ``active`` pixel, and not among the brightest ``drop_bright`` share of the pixel's
+    candidates (``floor(drop_bright * m)`` of ``m``, never leaving fewer than 3; ties go
+    to the lower image index)."""
+    i = np.asarray(intensities, dtype=np.float64)
+    valid = usable(i.T, th).T
+    if outlier is not None:
+        valid &= ~np.asarray(outlier, dtype=bool)
+    if active is not None:
+        valid &= np.asarray(active, dtype=bool)[:, None]
+    return drop_brightest(i, valid, th.drop_bright)
+
+
+def drop_brightest(
+    intensities: NDArray[np.floating], valid: NDArray[np.bool_], share: float
+) -> NDArray[np.bool_]:
+    """``valid`` without the brightest ``floor(share * m)`` of each row's ``m`` valid
+    observations, never leaving fewer than 3 (ties: the lower image index is dropped first)."""
+    valid = np.asarray(valid, dtype=bool)
+    if share <= 0 or not valid.size:
+        return valid
+    i = np.asarray(intensities, dtype=np.float64)
+    m = valid.sum(axis=1)
+    drop = np.minimum(np.floor(share * m), np.maximum(m - 3, 0)).astype(np.int64)
+    if not drop.any():
+        return valid
+    order = np.argsort(np.where(valid, -i, np.inf), axis=1, kind="stable")
+    rank = np.empty_like(order)
+    np.put_along_axis(rank, order, np.broadcast_to(np.arange(i.shape[1]), i.shape), axis=1)
+    return valid & (rank >= drop[:, None])
 
 
 def box_halfwidth(b: NDArray[np.float64], valid: NDArray[np.bool_], box_factor: float) -> float:

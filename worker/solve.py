@@ -14,7 +14,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from enum import StrEnum
+from enum import IntEnum, StrEnum
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -23,13 +23,18 @@ from worker.errors import InvalidInputError
 from worker.exact import exact_pixels
 from worker.lstsq import channel_albedo, normal_albedo, refit
 from worker.milp import MilpSolver
-from worker.noise import estimate_eps
+from worker.noise import Estimate, estimate_model
 from worker.observations import ObservationModel
 from worker.problem import (
     DEFAULT_BOX_FACTOR,
+    MODEL_DEFAULTS,
+    Model,
     Thresholds,
+    candidates,
     check_lights,
+    check_options,
     make_thresholds,
+    shading,
     slabs,
     usable,
 )
@@ -49,6 +54,18 @@ class Solver(StrEnum):
     L2 = "l2"  #: Woodham least squares on every image (baseline, not robust)
 
 
+class Source(IntEnum):
+    """How a pixel's normal was obtained: the ``source`` output (uint8)."""
+
+    MASKED = 0  #: outside the mask: not solved
+    CERTIFIED = 1  #: Max-FS optimum, proved (exact solver or MILP)
+    BEST_FOUND = 2  #: Max-FS, best inlier set found within the budget, not proved optimal
+    FIT = 3  #: least squares, nothing proved: the l2 solver, or the fallback of the robust
+    #: model where Max-FS gives no normal (< 3 candidates, or rank-deficient inliers)
+    UNDETERMINED = 4  #: no normal: the usable lights do not determine one (rank < 3 or
+    #: badly conditioned); NaN normal, albedo 0
+
+
 @dataclass(frozen=True)
 class PixelResult:
     """Results for a flat batch of P pixels with k images."""
@@ -61,6 +78,7 @@ class PixelResult:
     optimal: NDArray[np.bool_]  # (P,) True where the optimum is proved
     point: NDArray[np.float64]  # (P, 3) the Max-FS point before the refit
     nodes: NDArray[np.int64]  # (P,) search nodes used by the exact solver
+    source: NDArray[np.uint8]  # (P,) how the normal was obtained (:class:`Source`)
 
 
 @dataclass(frozen=True)
@@ -74,6 +92,8 @@ class Solution:
     inlier_count: NDArray[np.uint16]  # (H, W)
     optimal: NDArray[np.bool_]  # (H, W)
     eps: float  # the eps used (estimated when eps="auto")
+    source: NDArray[np.uint8]  # (H, W) how each normal was obtained (:class:`Source`)
+    response: float = 1.0  # the response g used (estimated when response="auto")
 
 
 def solve_pixels(
@@ -115,29 +135,30 @@ def solve_pixels(
     I = np.asarray(I, dtype=np.float64)
     P, k = I.shape
     act = np.ones(P, dtype=bool) if active is None else np.asarray(active, dtype=bool)
-    valid = usable(I.T, th).T & act[:, None]
-    if outlier is not None:
-        valid &= ~outlier
+    S = shading(I, th)  # what L.n should match: I, or I^(1/g) under a response
     nodes = np.zeros(P, dtype=np.int64)
+    optimal = np.zeros(P, dtype=bool)
+    source = np.full(P, Source.UNDETERMINED, dtype=np.uint8)
     if solver is Solver.L2:
         inl = np.isfinite(I) & act[:, None]
-        point = refit(I, inl, L)
-        optimal = np.zeros(P, dtype=bool)  # least squares proves no optimum
+        point = refit(S, inl, L)
+        source[:] = Source.FIT  # least squares proves no optimum
     else:
+        valid = candidates(I, th, outlier, act)
         point = np.full((P, 3), np.nan)
         inl = np.zeros((P, k), dtype=bool)
-        optimal = np.ones(P, dtype=bool)
         rows = np.flatnonzero(valid.sum(axis=1) >= 3)
         if rows.size:
+            lo, hi = slabs(I[rows], th)
             if solver is Solver.EXACT:
-                lo, hi = slabs(I[rows], th.eps)
-                pt, il, _, nd, cert = exact_pixels(I[rows], lo, hi, valid[rows], L, th.box_factor, max_nodes)
+                pt, il, _, nd, cert = exact_pixels(S[rows], lo, hi, valid[rows], L, th.box_factor, max_nodes)
                 nodes[rows] = nd
                 redo = np.flatnonzero(~cert)
                 if redo.size:  # budget exhausted: the MILP decides
                     ms = MilpSolver(L, milp_time_limit)
+                    r2 = rows[redo]
                     mpt, mil, _, mcert, _ = ms.solve_pixels(
-                        I[rows[redo]], valid[rows[redo]], th.eps, th.box_factor
+                        S[r2], valid[r2], (lo[redo], hi[redo]), th.box_factor
                     )
                     better = mil.sum(axis=1) >= il[redo].sum(axis=1)
                     pt[redo[better]] = mpt[better]
@@ -145,17 +166,80 @@ def solve_pixels(
                     cert[redo] = mcert
             else:
                 ms = MilpSolver(L, milp_time_limit)
-                pt, il, _, cert, _ = ms.solve_pixels(I[rows], valid[rows], th.eps, th.box_factor)
+                pt, il, _, cert, _ = ms.solve_pixels(S[rows], valid[rows], (lo, hi), th.box_factor)
             point[rows], inl[rows], optimal[rows] = pt, il, cert
-    n = refit(I, inl, L)
+            source[rows] = np.where(cert, Source.CERTIFIED, Source.BEST_FOUND)
+    n = refit(S, inl, L)
+    if th.fallback and solver is not Solver.L2:
+        need = np.flatnonzero(act & ~np.isfinite(n[:, 0]))
+        if need.size:  # least squares on the non-zero, unsaturated observations
+            fb = usable(I[need].T, _no_shadow(th)).T
+            if outlier is not None:
+                fb &= ~outlier[need]
+            nf = refit(S[need], fb, L)
+            got = np.isfinite(nf[:, 0])
+            n[need[got]] = nf[got]
+            inl[need] = fb & got[:, None]
+            optimal[need] = False
+            source[need[got]] = Source.FIT
     normal, albedo = normal_albedo(n)
     solved = np.isfinite(normal[:, 0])
     inl &= solved[:, None]
+    optimal &= solved  # a normal the inliers do not determine is not an answer
+    source[~solved] = Source.UNDETERMINED
+    source[~act] = Source.MASKED
     count = inl.sum(axis=1).astype(np.uint16)
     albedo_rgb = None
     if rgb is not None:
-        albedo_rgb = channel_albedo(np.asarray(rgb, dtype=np.float64), inl, L, normal)
-    return PixelResult(normal, albedo, albedo_rgb, inl, count, optimal, point, nodes)
+        rgb_s = shading(np.asarray(rgb, dtype=np.float64), th)
+        albedo_rgb = channel_albedo(rgb_s, inl, L, normal)
+    return PixelResult(normal, albedo, albedo_rgb, inl, count, optimal, point, nodes, source)
+
+
+def _no_shadow(th: Thresholds) -> Thresholds:
+    """``th`` with only zero (and below) counted as shadow: the fallback's observations."""
+    return Thresholds(0.0 if th.eps <= 0 else th.eps, 0.0, th.saturation, th.box_factor)
+
+
+def estimate_job(
+    read_block: Callable[[Tile], NDArray],
+    L: NDArray[np.float64],
+    obs: ObservationModel,
+    mask: NDArray[np.bool_] | None,
+    shape: tuple[int, int],
+    *,
+    eps: float | str = "auto",
+    response: float | str = 1.0,
+    drop_bright: float = 0.0,
+    model: Model | str = Model.PAPER,
+) -> Estimate:
+    """Resolve ``"auto"`` eps and response (:func:`worker.noise.estimate_model`) on the
+    fixed sample of :func:`eps_sample`.
+
+    ``read_block(window)`` returns the raw block ``(k, h, w[, C])`` of a window (a
+    :class:`Tile` that need not be on the tile grid), so the in-process and the service
+    paths see the same pixels whatever their tile size, and the service reads a few
+    chunks per window instead of the whole stack.
+    """
+    for name, v in (("eps", eps), ("response", response)):
+        if isinstance(v, str) and v != "auto":
+            raise InvalidInputError(f"{name} must be a positive number or 'auto', got {v!r}")
+    picks = eps_sample(shape, mask)
+    if not picks:
+        raise InvalidInputError("cannot estimate eps: the mask selects no pixel; give eps explicitly")
+    raw = np.concatenate([read_block(t)[:, ys, xs] for t, ys, xs in picks], axis=1)
+    grey, _, saturated = obs.prepare(raw)
+    ok = np.isfinite(grey) & (grey > 0) & ~saturated
+    return estimate_model(
+        grey,
+        ok,
+        L,
+        step=obs.step,
+        eps=eps,
+        response=response,
+        drop_bright=drop_bright,
+        by_intensity=MODEL_DEFAULTS[Model(model)].noise_by_intensity,
+    )
 
 
 def estimate_job_eps(
@@ -164,48 +248,50 @@ def estimate_job_eps(
     obs: ObservationModel,
     mask: NDArray[np.bool_] | None,
     shape: tuple[int, int],
-    tile: int,
+    tile: int | None = None,
     request: str = "auto",
 ) -> float:
-    """Estimate eps from a fixed sample of pixels in a few tiles (:func:`eps_sample`).
+    """eps alone, for the Lambertian response (``tile`` is ignored: the sample does not
+    depend on the tile grid). See :func:`estimate_job`."""
+    return estimate_job(read_block, L, obs, mask, shape, eps=request).eps
 
-    ``read_block(tile)`` returns the raw block ``(k, h, w[, C])`` of one tile, so
-    the in-process and the service paths see the same sample, and the service
-    reads k chunks per sampled tile instead of the whole stack.
-    """
-    if request != "auto":
-        raise InvalidInputError(f"eps must be a positive number or 'auto', got {request!r}")
-    picks = eps_sample(shape, mask, tile)
-    if not picks:
-        raise InvalidInputError("cannot estimate eps: the mask selects no pixel; give eps explicitly")
-    raw = np.concatenate([read_block(t)[:, ys, xs] for t, ys, xs in picks], axis=1)
-    grey, _, saturated = obs.prepare(raw)
-    ok = np.isfinite(grey) & (grey > 0) & ~saturated
-    return estimate_eps(grey, ok, L, integer_valued=obs.integer_valued)
+
+#: The sample for the job-level estimates: this many windows of ``SAMPLE_EDGE`` pixels.
+SAMPLE_WINDOWS = 16
+SAMPLE_EDGE = 16
 
 
 def eps_sample(
-    shape: tuple[int, int], mask: NDArray[np.bool_] | None, tile: int, n: int = 4096, max_tiles: int = 4
+    shape: tuple[int, int],
+    mask: NDArray[np.bool_] | None,
+    windows: int = SAMPLE_WINDOWS,
+    edge: int = SAMPLE_EDGE,
 ) -> list[tuple[Tile, NDArray[np.intp], NDArray[np.intp]]]:
-    """Pixels used to estimate eps: up to ``max_tiles`` tiles spread over the object
-    (evenly spaced in raster order among those at least half as covered by the mask
-    as the best one), and in each every s-th masked pixel, ``n`` pixels in all."""
-    grid = list(tiles(shape[0], shape[1], tile))
-    cover = np.array(
-        [t.shape[0] * t.shape[1] if mask is None else int(mask[t.y0 : t.y1, t.x0 : t.x1].sum()) for t in grid]
-    )
-    if cover.max(initial=0) == 0:
+    """Pixels for the eps and response estimates, a function of the image size and mask
+    only (never of the tile grid): ``windows`` square windows of ``edge`` pixels centred
+    on masked pixels evenly spaced in raster order (so spread over the object's rows),
+    and every masked pixel inside them not taken by an earlier window (up to
+    ``windows * edge**2`` = 4096 pixels). Each item is ``(window, ys, xs)`` with
+    coordinates local to the window; a window costs a few chunk reads per image."""
+    H, W = shape
+    m = np.ones((H, W), bool) if mask is None else np.asarray(mask, dtype=bool)
+    flat = np.flatnonzero(m)
+    if flat.size == 0:
         return []
-    good = [t for t, c in zip(grid, cover, strict=True) if c > 0 and 2 * c >= cover.max()]
-    chosen = sorted({int(j) for j in np.linspace(0, len(good) - 1, min(max_tiles, len(good)))})
-    per = -(-n // len(chosen))
+    centres = flat[np.unique(np.linspace(0, flat.size - 1, min(windows, flat.size)).astype(np.int64))]
+    taken = np.zeros((H, W), bool)
     out = []
-    for j in chosen:
-        t = good[j]
-        local = np.ones(t.shape, bool) if mask is None else np.asarray(mask[t.y0 : t.y1, t.x0 : t.x1], bool)
-        flat = np.flatnonzero(local)
-        ys, xs = np.unravel_index(flat[:: max(1, -(-flat.size // per))], t.shape)
-        out.append((t, ys.astype(np.intp), xs.astype(np.intp)))
+    for j, c in enumerate(centres):
+        cy, cx = divmod(int(c), W)
+        y0 = min(max(cy - edge // 2, 0), max(H - edge, 0))
+        x0 = min(max(cx - edge // 2, 0), max(W - edge, 0))
+        y1, x1 = min(y0 + edge, H), min(x0 + edge, W)
+        local = m[y0:y1, x0:x1] & ~taken[y0:y1, x0:x1]
+        if not local.any():
+            continue
+        taken[y0:y1, x0:x1] |= local
+        ys, xs = np.nonzero(local)
+        out.append((Tile(-1 - j, -1, -1, y0, y1, x0, x1), ys.astype(np.intp), xs.astype(np.intp)))
     return out
 
 
@@ -220,6 +306,7 @@ class TileResult:
     inlier_count: NDArray[np.uint16]  # (h, w)
     optimal: NDArray[np.bool_]  # (h, w)
     nodes: int  # exact-solver search nodes spent on the tile
+    source: NDArray[np.uint8] | None = None  # (h, w) how each normal was obtained
 
 
 def solve_tile(
@@ -255,6 +342,7 @@ def solve_tile(
         inlier_count=r.count.reshape(h, w),
         optimal=r.optimal.reshape(h, w),
         nodes=int(r.nodes.sum()),
+        source=r.source.reshape(h, w),
     )
 
 
@@ -272,6 +360,12 @@ def solve(
     max_nodes: int = DEFAULT_MAX_NODES,
     milp_time_limit: float = DEFAULT_MILP_TIME_LIMIT,
     tile: int = DEFAULT_TILE,
+    model: Model | str = Model.PAPER,
+    response: float | str | None = None,
+    eps_rel: float | None = None,
+    drop_bright: float | None = None,
+    dequantize: bool | None = None,
+    fallback: bool | None = None,
 ) -> Solution:
     """Normals, albedo and inlier masks of a whole stack, in this process.
 
@@ -295,6 +389,17 @@ def solve(
     tile
         Tile edge; pixels are solved tile by tile exactly as the service does, so
         results equal the service's for the same tile size (see :mod:`worker.tiles`).
+    model
+        ``"paper"`` (default here: Yu, Seo, Lee 2010 as published) or ``"robust"`` (the
+        CLI and HTTP default); see :mod:`worker.problem`. The options below left None
+        take the model's values (:data:`worker.problem.MODEL_DEFAULTS`).
+    response
+        Exponent g of ``I = (L.n)^g``, or ``"auto"`` (:func:`worker.noise.select_response`).
+    eps_rel, drop_bright, fallback
+        See :class:`worker.problem.Thresholds`.
+    dequantize
+        Integer input: read a raw value ``v > 0`` as ``v + 0.5`` (see
+        :class:`worker.observations.ObservationModel`).
     """
     arr = np.asarray(images)
     if arr.ndim not in (3, 4):
@@ -303,17 +408,45 @@ def solve(
     if k < 3:
         raise InvalidInputError(f"photometric stereo needs at least 3 images, got {k}")
     L = check_lights(lights, k)
-    obs = ObservationModel.for_input(arr.dtype, k, arr.shape[3] if arr.ndim == 4 else None, intensities)
+    check_options(eps=None, model=model, eps_rel=eps_rel, response=response, drop_bright=drop_bright)
+    defaults = MODEL_DEFAULTS[Model(model)]
+    deq = defaults.dequantize if dequantize is None else bool(dequantize)
+    resp = defaults.response if response is None else response
+    obs = ObservationModel.for_input(
+        arr.dtype, k, arr.shape[3] if arr.ndim == 4 else None, intensities, dequantize=deq
+    )
     m = None
     if mask is not None:
         m = np.asarray(mask, dtype=bool)
         if m.shape != (H, W):
             raise InvalidInputError(f"mask has shape {m.shape}, images are {H} x {W}")
-    if isinstance(eps, str):
-        eps_v = estimate_job_eps(lambda t: arr[:, t.y0 : t.y1, t.x0 : t.x1], L, obs, m, (H, W), tile, eps)
+    if isinstance(eps, str) or isinstance(resp, str):
+        est = estimate_job(
+            lambda t: arr[:, t.y0 : t.y1, t.x0 : t.x1],
+            L,
+            obs,
+            m,
+            (H, W),
+            eps=eps,
+            response=resp,
+            drop_bright=defaults.drop_bright if drop_bright is None else drop_bright,
+            model=model,
+        )
+        eps_v, resp_v = est.eps, est.response
     else:
-        eps_v = float(eps)
-    th = make_thresholds(k, eps_v, shadow=shadow, saturation=saturation, box_factor=box_factor)
+        eps_v, resp_v = float(eps), float(resp)
+    th = make_thresholds(
+        k,
+        eps_v,
+        shadow=shadow,
+        saturation=saturation,
+        box_factor=box_factor,
+        model=model,
+        eps_rel=eps_rel,
+        response=resp_v,
+        drop_bright=drop_bright,
+        fallback=fallback,
+    )
     C = arr.shape[3] if arr.ndim == 4 else None
     normal = np.empty((H, W, 3), np.float32)
     albedo = np.empty((H, W), np.float32)
@@ -321,6 +454,7 @@ def solve(
     inliers = np.empty((k, H, W), bool)
     count = np.empty((H, W), np.uint16)
     optimal = np.empty((H, W), bool)
+    source = np.empty((H, W), np.uint8)
     for t in tiles(H, W, tile):
         ys, xs = slice(t.y0, t.y1), slice(t.x0, t.x1)
         r = solve_tile(
@@ -340,4 +474,5 @@ def solve(
         inliers[:, ys, xs] = r.inliers
         count[ys, xs] = r.inlier_count
         optimal[ys, xs] = r.optimal
-    return Solution(normal, albedo, albedo_rgb, inliers, count, optimal, eps_v)
+        source[ys, xs] = r.source
+    return Solution(normal, albedo, albedo_rgb, inliers, count, optimal, eps_v, source, resp_v)

@@ -17,8 +17,9 @@ from numpy.typing import NDArray
 
 from storage.layout import JobStore
 from worker.errors import StoreError
+from worker.noise import Estimate
 from worker.problem import make_thresholds
-from worker.solve import estimate_job_eps, solve_tile
+from worker.solve import estimate_job, solve_tile
 from worker.tiles import Tile
 
 
@@ -69,7 +70,12 @@ def compute_tile(
     raw = (read_images or store.read_tile_images)(t)
     spec = store.spec
     th = make_thresholds(
-        spec.k, params.eps, shadow=params.shadow, saturation=params.saturation, box_factor=params.box_factor
+        spec.k,
+        params.eps,
+        shadow=params.shadow,
+        saturation=params.saturation,
+        box_factor=params.box_factor,
+        **params.threshold_options(),
     )
     res = solve_tile(
         raw,
@@ -97,22 +103,26 @@ def compute_tile(
     )
 
 
-def estimate_store_eps(job_dir: str) -> float:
-    """eps="auto" as a Dask task (see :func:`estimate_eps_of`)."""
+def estimate_store_eps(job_dir: str) -> Estimate:
+    """eps and response "auto" as a Dask task (see :func:`estimate_eps_of`)."""
     return estimate_eps_of(JobStore.open(Path(job_dir), mode="r"))
 
 
-def estimate_eps_of(store: JobStore, read_images: Callable[[Tile], NDArray] | None = None) -> float:
-    """eps="auto": estimate from the same tiles and pixels on every path (``read_images``
-    as for :func:`compute_tile`)."""
-    spec = store.spec
-    return estimate_job_eps(
+def estimate_eps_of(store: JobStore, read_images: Callable[[Tile], NDArray] | None = None) -> Estimate:
+    """Resolve eps and response "auto" (:func:`worker.solve.estimate_job`) from the same
+    pixels on every path, whatever the tile size (``read_images`` as for
+    :func:`compute_tile`, called with sample windows off the tile grid)."""
+    spec, params = store.spec, store.params
+    return estimate_job(
         read_images or store.read_tile_images,
         spec.lights,
         store.observation_model,
         store.read_mask(),
         (spec.height, spec.width),
-        store.params.tile,
+        eps=params.eps_request,
+        response=params.response_request,
+        drop_bright=params.drop_bright,
+        model=params.model,
     )
 
 
