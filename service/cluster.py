@@ -365,7 +365,7 @@ async def check_store_visible(client: Client, job_dir: Path, job_id: str) -> Non
     Raises :class:`StoreError` with what the worker saw otherwise. Waits for a worker (a
     SLURM worker job may wait in the queue first).
     """
-    job_dir = Path(job_dir).absolute()
+    job_dir = Path(job_dir)  # the very path the tile tasks get
     nonce = uuid.uuid4().hex
     name = f"{PROBE_PREFIX}{nonce}"
     probe, answer = job_dir / name, job_dir / f"{name}.answer"
@@ -381,6 +381,8 @@ async def check_store_visible(client: Client, job_dir: Path, job_id: str) -> Non
         if seen is None and not (answer.is_file() and answer.read_text() == nonce):
             seen = "a worker wrote its answer where this process cannot read it"
         if seen is not None:
+            if not job_dir.is_absolute():
+                seen += f"; the path is relative to this process's folder {Path.cwd()}: make it absolute"
             raise StoreError(
                 f"the Dask workers cannot see the job store {job_dir} ({seen}). Put it on a filesystem "
                 "that this process and every worker node mount at the same path (NFS, Lustre, ...): "
