@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import hashlib
 import io
+import json
 import shutil
 import tempfile
 import time
@@ -14,7 +16,9 @@ from typing import Any
 import httpx
 import numpy as np
 from numpy.typing import NDArray
+from pydantic import ValidationError
 
+from service.models import ErrorBody, JobStatus
 from service.statuses import error_for_status
 from storage.datasets import Dataset, load_folder
 from worker.errors import ConflictError, MaxfsError
@@ -24,6 +28,16 @@ FINAL_STATES = ("done", "failed", "cancelled")
 PARTIAL_HEADER = "x-maxfs-partial"
 #: Bytes per piece of a streamed upload.
 UPLOAD_PIECE = 1 << 20
+
+
+def submission_label(ds: Dataset, meta: dict[str, Any]) -> str | None:
+    """The label that makes a submit of the same files with the same parameters resumable
+    (None for a dataset without files, e.g. one made in memory)."""
+    fp = ds.fingerprint()
+    if fp is None:
+        return None
+    blob = json.dumps({"files": fp, **meta}, sort_keys=True, default=str).encode()
+    return "submit-" + hashlib.sha256(blob).hexdigest()[:32]
 
 
 class MaxfsClient:
@@ -45,9 +59,9 @@ class MaxfsClient:
     def _call(self, method: str, url: str, **kw: Any) -> httpx.Response:
         r = self.http.request(method, url, **kw)
         if r.status_code >= 400:
-            try:
-                detail = r.json().get("detail", r.text)
-            except ValueError:
+            try:  # every error the server makes is an ErrorBody; a proxy's may not be
+                detail = ErrorBody.model_validate_json(r.content).detail
+            except ValidationError:
                 detail = r.text
             raise error_for_status(r.status_code)(f"server said {r.status_code}: {detail}")
         return r
@@ -84,11 +98,24 @@ class MaxfsClient:
     def status(self, job_id: str) -> dict[str, Any]:
         return self._call("GET", f"/jobs/{job_id}").json()
 
+    def job(self, job_id: str) -> JobStatus:
+        """The job's status checked against, and typed as, the model the server documents
+        (:meth:`status` gives the body as a dict)."""
+        return JobStatus.model_validate(self.status(job_id))
+
     def jobs(self) -> list[dict[str, Any]]:
         return self._call("GET", "/jobs").json()
 
+    def job_list(self) -> list[JobStatus]:
+        """The jobs this token may see, oldest first, as typed models (:meth:`jobs`: as dicts)."""
+        return [JobStatus.model_validate(st) for st in self.jobs()]
+
     def cancel(self, job_id: str) -> dict[str, Any]:
         return self._call("DELETE", f"/jobs/{job_id}").json()
+
+    def delete(self, job_id: str) -> dict[str, Any]:
+        """Delete a job nothing runs for (cancel a queued or running one first), with its data."""
+        return self._call("DELETE", f"/jobs/{job_id}", params={"purge": "true"}).json()
 
     def wait(
         self,
@@ -113,8 +140,9 @@ class MaxfsClient:
         r = self._call("GET", f"/jobs/{job_id}/results/{name}.npy")
         return np.load(io.BytesIO(r.content), allow_pickle=False)
 
-    def fetch_zarr(self, job_id: str, out: Path, *, partial: bool = False) -> Path:
-        """Download the job's Zarr group (zip) and unpack it at ``out``.
+    def fetch_zarr(self, job_id: str, out: Path, *, partial: bool = False, inputs: bool = False) -> Path:
+        """Download the job's results (a zip) and unpack them as the job folder ``out``
+        (``out/results.zarr``, previews, record; the input stack only if ``inputs``).
 
         A job that is not done has partial results (unfinished tiles hold fill values):
         they are refused unless ``partial`` (use :meth:`wait` first to get complete ones).
@@ -132,7 +160,8 @@ class MaxfsClient:
                     "finished (--partial)"
                 )
         with tempfile.TemporaryFile() as tmp:
-            with self.http.stream("GET", f"/jobs/{job_id}/results.zip") as r:
+            url = f"/jobs/{job_id}/results.zip" + ("?inputs=true" if inputs else "")
+            with self.http.stream("GET", url) as r:
                 if r.status_code >= 400:
                     r.read()
                     raise error_for_status(r.status_code)(f"server said {r.status_code}: {r.text}")
@@ -161,6 +190,11 @@ class MaxfsClient:
         images), stream its images one by one, start it.
 
         Only one decoded image is in memory at a time (NPY stacks are memory-mapped).
+
+        **Resumable**: the job is labelled with a digest of the folder's files (paths, sizes,
+        times), the selection and the parameters. If this user already has an unfinished job with
+        that label (a submit cut short), it is continued: only its missing images are sent, then
+        it is started; one that is already queued or running is just returned.
         """
         ds = folder if isinstance(folder, Dataset) else load_folder(folder)
         meta: dict[str, Any] = {
@@ -173,10 +207,23 @@ class MaxfsClient:
             "intensities": None if ds.intensities is None else np.asarray(ds.intensities).tolist(),
             **{k: v for k, v in params.items() if v is not None},
         }
-        job = self.create_job(**meta)
-        for i in range(ds.k):
-            self.upload_image(job["id"], i, ds.read(i))
+        label = submission_label(ds, meta)
+        found = None
+        if label is not None:
+            found = next(
+                (j for j in self.jobs() if j.get("label") == label and j["state"] not in FINAL_STATES), None
+            )
+        if found is not None and found["state"] in ("queued", "running"):
+            return found["id"]
+        if found is None:
+            job_id = self.create_job(**meta, label=label)["id"]
+            missing: list[int] = list(range(ds.k))
+        else:
+            job_id = found["id"]
+            missing = list(self.status(job_id).get("missing_images", range(ds.k)))
+        for i in missing:
+            self.upload_image(job_id, i, ds.read(i))
         if ds.mask is not None:
-            self.upload_mask(job["id"], ds.mask)
-        self.start(job["id"])
-        return job["id"]
+            self.upload_mask(job_id, ds.mask)
+        self.start(job_id)
+        return job_id

@@ -81,26 +81,26 @@ def run_in_process(
         todo = tile_order(store, [t for t in store.tiles() if not done[t.index]])
         digest, counter, last = params.digest(), RunCounter(rec), 0.0
         t0 = time.perf_counter()
-        with ThreadPoolExecutor(max(1, threads), thread_name_prefix="maxfs-tile") as pool:
-            futures = {pool.submit(compute_tile, store, t.index, digest, reader): t for t in todo}
-            try:
-                while futures:
-                    finished, _ = wait(futures, return_when=FIRST_COMPLETED)
-                    for fut in finished:
-                        t = futures.pop(fut)
-                        try:
-                            out: TileOutcome = fut.result()
-                        except Exception as e:
-                            raise RuntimeError(f"tile {t.index} failed: {type(e).__name__}: {e}") from e
-                        if out.status == "done":
-                            counter.add(out)
-                    if time.monotonic() - last >= progress_interval:
-                        save()
-                        last = time.monotonic()
-            except BaseException:
-                for fut in futures:
-                    fut.cancel()
-                raise
+        pool = ThreadPoolExecutor(max(1, threads), thread_name_prefix="maxfs-tile")
+        futures = {pool.submit(compute_tile, store, t.index, digest, reader): t for t in todo}
+        try:
+            while futures:
+                finished, _ = wait(futures, return_when=FIRST_COMPLETED)
+                for fut in finished:
+                    t = futures.pop(fut)
+                    try:
+                        out: TileOutcome = fut.result()
+                    except Exception as e:
+                        raise RuntimeError(f"tile {t.index} failed: {type(e).__name__}: {e}") from e
+                    if out.status == "done":
+                        counter.add(out)
+                if time.monotonic() - last >= progress_interval:
+                    save()
+                    last = time.monotonic()
+        finally:
+            # on an error or Ctrl-C, queued tiles never start and nothing waits for running
+            # ones: a tile counts only once its done marker is written, so none is lost
+            pool.shutdown(wait=not futures, cancel_futures=True)
         note("tiles", time.perf_counter() - t0)
         if pending is not None:
             t0 = time.perf_counter()

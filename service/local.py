@@ -8,7 +8,6 @@ ones make every tile count as unfinished (their done markers no longer match).
 from __future__ import annotations
 
 import asyncio
-import json
 import shutil
 import threading
 import time
@@ -27,7 +26,7 @@ from service.settings import Settings
 from service.timings import Timings
 from storage.datasets import Dataset
 from storage.imageio import encode_png
-from storage.layout import JobSpec, JobStore, array_digest, lights_digest
+from storage.layout import GROUP_DIR, JobSpec, JobStore, array_digest, is_job_folder, lights_digest
 from storage.params import JobParams
 from storage.records import JobRecord, JobState, load_record, save_record
 from worker.errors import ConflictError, InvalidInputError, StoreError
@@ -52,13 +51,13 @@ def ingest(
     if out.exists() and not out.is_dir():
         raise ConflictError(f"{out} is a file; give a folder path for the results")
     if out.exists() and any(out.iterdir()):
-        if not is_job_store(out):
+        if not is_job_folder(out):
             raise ConflictError(
                 f"{out} is not empty and holds no maxfs results; choose a new or empty output folder"
             )
         if overwrite:
             shutil.rmtree(out)
-    if (out / "zarr.json").exists():
+    if (out / GROUP_DIR / "zarr.json").exists():
         store = JobStore.open(out)
         _check_same_inputs(store, ds, spec, out)
         old = store.params
@@ -85,15 +84,6 @@ def ingest(
     if not store.read_mask().any():
         raise InvalidInputError(f"the mask of {ds.name} selects no pixel; nothing to solve")
     return store, note
-
-
-def is_job_store(path: Path) -> bool:
-    """Whether ``path`` holds a maxfs job store (of any format version)."""
-    try:
-        meta = json.loads((Path(path) / "zarr.json").read_text())
-    except (OSError, ValueError):
-        return False
-    return isinstance(meta, dict) and "maxfs_format" in meta.get("attributes", {})
 
 
 def _check_same_inputs(store: JobStore, ds: Dataset, spec: JobSpec, out: Path) -> None:
@@ -141,6 +131,7 @@ def cluster_settings(scheduler: str = "", workers: int = 2, cluster: str = "") -
 
 async def _run(out: Path, settings: Settings, on_progress: ProgressFn | None) -> JobRecord:
     # SLURM worker jobs write their logs beside the results (a shared filesystem either way)
+    out = out.absolute()  # workers elsewhere have other working folders
     async with open_cluster(settings, log_dir=out / "slurm-logs") as dc:
         return await run_job(dc.client, out, on_progress=on_progress)
 
@@ -228,10 +219,10 @@ def run_folder(
             with tm.phase("cluster run (start, tiles, stop)"):
                 rec = asyncio.run(_run(out, settings, on_progress))
     except BaseException:
-        stop.set()
+        stop.set()  # the writer stops after its image; a cut-short image stays marked missing
+        writer.shutdown(wait=False)
         raise
-    finally:
-        writer.shutdown(wait=True)
+    writer.shutdown(wait=True)
     if rec.state is JobState.DONE:
         finish(out, tm)
     return store, rec

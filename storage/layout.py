@@ -1,6 +1,10 @@
-"""The Zarr v3 job store: one directory per job, every array created up front.
+"""The job store: one folder per job, a Zarr v3 group inside with every array created up front.
 
-Layout (root group; ``T`` = tile edge, chunks are tile-aligned)::
+The job folder holds the group ``results.zarr/`` (nothing but Zarr, so xarray and
+other Zarr tools read it as it is) and, beside it, what is not Zarr: ``maxfs-job.json``
+(the record), ``maxfs-runs.log`` (one line per tile execution), ``maxfs-cancel`` (a flag
+that makes tile tasks stop) and ``previews/``. Arrays of ``results.zarr`` (``T`` = tile
+edge, chunks are tile-aligned)::
 
     images        (k, H, W[, C])  uint8|uint16|float32  chunks (1, T, T[, C]) in shards (1, T, W'[, C])
     uploaded      (k,)            bool                  chunks (1,)   set after images[i]
@@ -35,15 +39,12 @@ params.token()`` last. A tile counts as finished only if its marker equals the
 token of the *current* parameters, so a job re-run with other parameters never
 reuses stale tiles. The store is created once, by the service or CLI, with mode
 ``w-``; everything after opens it ``r+``.
-
-Beside the arrays, the job directory holds ``maxfs-job.json`` (the record),
-``maxfs-runs.log`` (one line per tile execution) and ``maxfs-cancel`` (a flag
-file that makes tile tasks stop at the next tile boundary).
 """
 
 from __future__ import annotations
 
 import hashlib
+import json
 import os
 import time
 from collections.abc import Callable, Iterable
@@ -103,7 +104,11 @@ class ProgressCounts:
     solved: int  # masked pixels in finished tiles that got a normal
     certified: int  # ... whose optimum was proved
 
-FORMAT_VERSION = 2
+FORMAT_VERSION = 3
+#: The Zarr group's folder inside a job folder.
+GROUP_DIR = "results.zarr"
+#: Arrays that hold the input stack: left out of result downloads unless asked for.
+BULK_INPUTS = frozenset({"images"})
 DIGEST_BYTES = 32
 #: ``input_digests[k]`` while a mask is being written (a crash leaves it there).
 MASK_WRITING = bytes([0xFF]) * DIGEST_BYTES
@@ -238,6 +243,24 @@ class JobSpec:
             )
 
 
+def job_folder(path: Path) -> Path:
+    """The job folder of ``path``, which may name the folder or its ``results.zarr``."""
+    path = Path(path)
+    return path.parent if path.name == GROUP_DIR and (path / "zarr.json").exists() else path
+
+
+def is_job_folder(path: Path) -> bool:
+    """Whether ``path`` holds a maxfs job store, of this or an older format."""
+    for meta in (Path(path) / GROUP_DIR / "zarr.json", Path(path) / "zarr.json"):
+        try:
+            attrs = json.loads(meta.read_text()).get("attributes", {})
+        except (OSError, ValueError, AttributeError):
+            continue
+        if isinstance(attrs, dict) and "maxfs_format" in attrs:
+            return True
+    return False
+
+
 class JobStore:
     """A job directory: its Zarr group plus record, run log and cancel flag."""
 
@@ -267,7 +290,7 @@ class JobStore:
         """Create the job directory and every array. Fails if it already exists."""
         spec = spec.validate()
         path = Path(path)
-        if (path / "zarr.json").exists():
+        if (path / GROUP_DIR / "zarr.json").exists():
             raise ConflictError(f"{path} already holds a job store; resume it instead of creating it")
         path.mkdir(parents=True, exist_ok=True)
         T = params.tile
@@ -276,7 +299,7 @@ class JobStore:
         img_chunks = (1, min(T, H), min(T, W), *cc)
         img_shards = (1, min(T, H), -(-W // min(T, W)) * min(T, W), *cc)
         try:
-            g = zarr.open_group(path, mode="w-", zarr_format=3)
+            g = zarr.open_group(path / GROUP_DIR, mode="w-", zarr_format=3)
         except (zarr.errors.ContainsGroupError, zarr.errors.ContainsArrayError, FileExistsError):
             raise ConflictError(f"{path} already holds a Zarr store") from None
         tc = (min(T, H), min(T, W))
@@ -397,11 +420,16 @@ class JobStore:
         """Open an existing store (never truncates)."""
         if mode not in ("r", "r+"):
             raise ValueError("job stores are opened 'r' or 'r+' only")
-        path = Path(path)
-        if not (path / "zarr.json").exists():
+        path = job_folder(Path(path))
+        if (path / "zarr.json").exists():  # format 1 and 2 kept the record inside the group
+            raise StoreError(
+                f"{path} was written by an older maxfs (its Zarr group is the folder itself); "
+                "run again with --overwrite to replace it, or choose another output"
+            )
+        if not (path / GROUP_DIR / "zarr.json").exists():
             raise NotFoundError(f"no job store at {path}")
         try:
-            g = zarr.open_group(path, mode=mode, zarr_format=3)
+            g = zarr.open_group(path / GROUP_DIR, mode=mode, zarr_format=3)
         except (FileNotFoundError, zarr.errors.GroupNotFoundError) as e:
             raise NotFoundError(f"no job store at {path}: {e}") from None
         except (ValueError, KeyError) as e:
@@ -614,6 +642,19 @@ class JobStore:
 
     def output_names(self) -> list[str]:
         return [n for n in OUTPUTS if n in self.group]
+
+    def download_files(self, include_inputs: bool = False) -> list[tuple[Path, str]]:
+        """Files of a results download, as (path, name in the archive): the Zarr group without
+        the input stack (unless ``include_inputs``), the previews and the record."""
+        skip = set() if include_inputs else {self.path / GROUP_DIR / name for name in BULK_INPUTS}
+        out = []
+        for p in sorted(self.path.rglob("*")):
+            if not p.is_file() or p.name.startswith(".") or p.name == CANCEL_FLAG:
+                continue
+            if any(s == p or s in p.parents for s in skip):
+                continue
+            out.append((p, p.relative_to(self.path).as_posix()))
+        return out
 
     # -- run log and cancel flag -----------------------------------------------------------------
     def log_run(self, tile_index: int, outcome: str) -> None:

@@ -34,7 +34,7 @@ def test_run_uw_object_writes_sane_outputs(tmp_path: Path, obj: str) -> None:
     assert r.returncode == 0, r.stderr
     solved, certified = re.search(r"solved ([\d.]+)%, certified optimal ([\d.]+)%", r.stdout).groups()
     assert solved == certified, "every solved pixel's optimum is proved"
-    g = zarr.open_group(out, mode="r")
+    g = zarr.open_group(out / "results.zarr", mode="r")
     mask = g["mask"][...]
     normal = g["normal"][...][mask]
     solved = np.isfinite(normal[:, 0])

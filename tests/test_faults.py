@@ -66,7 +66,7 @@ def test_tile_task_that_raises_fails_the_job_and_resume_finishes_it(
             for i in range(K):
                 c.upload_image(job_id, i, images[i])
             # the shard of image 3, rows 32-47: the four tiles of that band cannot read their input
-            shard = tmp_path / "data" / "jobs" / job_id / "images" / "c" / "3" / "2" / "0"
+            shard = tmp_path / "data" / "jobs" / job_id / "results.zarr" / "images" / "c" / "3" / "2" / "0"
             good = shard.read_bytes()
             shard.write_bytes(b"\x00not a shard" * 7)
             c.start(job_id)

@@ -4,8 +4,10 @@ bit-identical to the Dask path, and a finished job is not run again."""
 from __future__ import annotations
 
 import os
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -51,7 +53,7 @@ def test_threads_and_dask_cluster_give_identical_stores_and_finished_jobs_do_not
     dask = _run(folder, tmp_path / "dask.zarr", "--workers", "1", MAXFS_IN_PROCESS_BYTES="0")
     assert dask.returncode == 0, dask.stderr
     assert "cluster run (start, tiles, stop)" in _phases(dask.stderr)
-    a, b = (zarr.open_group(tmp_path / n, mode="r") for n in ("threads.zarr", "dask.zarr"))
+    a, b = (zarr.open_group(tmp_path / n / "results.zarr", mode="r") for n in ("threads.zarr", "dask.zarr"))
     for name in ARRAYS:
         np.testing.assert_array_equal(a[name][...], b[name][...], err_msg=name)
     store = JobStore.open(tmp_path / "threads.zarr", mode="r")
@@ -63,3 +65,28 @@ def test_threads_and_dask_cluster_give_identical_stores_and_finished_jobs_do_not
     assert "tiles already done" in again.stderr
     assert _phases(again.stderr) == ["imports", "open the folder", "open or create the store", "total"]
     assert JobStore.open(tmp_path / "threads.zarr", mode="r").run_counts() == before
+
+
+def test_ctrl_c_prints_one_line_and_the_same_command_resumes(tmp_path: Path) -> None:
+    sc = synthetic.bump_scene(12, 96, seed=2)
+    folder = write_npy_folder(tmp_path / "in", sc.images.astype(np.uint8), sc.lights, sc.mask)
+    cmd = [MAXFS, "run", str(folder), "-o", str(tmp_path / "out"), "--solver", "milp", "--tile", "16"]
+    p = subprocess.Popen(
+        cmd,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),  # as in a terminal
+    )
+    assert p.stderr is not None
+    for line in p.stderr:  # wait until tiles are being solved
+        if "running" in line:
+            break
+    t0 = time.monotonic()
+    p.send_signal(signal.SIGINT)
+    err = p.communicate(timeout=60)[1]
+    assert p.returncode == 130 and time.monotonic() - t0 < 10
+    assert "interrupted; run the same command again to resume" in err and "Traceback" not in err
+    again = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert again.returncode == 0, again.stderr
+    assert JobStore.open(tmp_path / "out", mode="r").done_grid().all()

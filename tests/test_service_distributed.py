@@ -95,7 +95,7 @@ def test_http_job_equals_in_process_solver(cluster: DaskCluster, tmp_path: Path,
             assert st["progress"]["certified_share"] == 1.0
             assert st["eps"] == data.exact_ref.eps
             out = c.fetch_zarr(job_id, tmp_path / "fetched.zarr")
-            g = zarr.open_group(out, mode="r")
+            g = zarr.open_group(out / "results.zarr", mode="r")
             _assert_equal({n: g[n][...] for n in OUTPUTS}, data.exact_ref)
             np.testing.assert_array_equal(c.fetch_array(job_id, "normal"), data.exact_ref.normal)
             png = c.http.get(f"/jobs/{job_id}/previews/normal.png").content

@@ -37,7 +37,7 @@ def _scene_folder(tmp: Path, name: str, seed: int = 0, lights: np.ndarray | None
 
 
 def _normals(out: Path) -> np.ndarray:
-    return np.asarray(zarr.open_group(out, mode="r")["normal"][...])
+    return np.asarray(zarr.open_group(out / "results.zarr", mode="r")["normal"][...])
 
 
 @needs_shared
@@ -156,7 +156,9 @@ def test_mask_cut_short_by_a_killed_server_is_never_used(tmp_path: Path) -> None
             store = tmp_path / "data" / "jobs" / jid
 
             def writing() -> bool:
-                row = np.asarray(zarr.open_group(store, mode="r")["input_digests"][images.shape[0]])
+                row = np.asarray(
+                    zarr.open_group(store / "results.zarr", mode="r")["input_digests"][images.shape[0]]
+                )
                 return bytes(row) == MASK_WRITING
 
             poll_until(writing, 60, "the server to be part-way through the mask")
@@ -177,6 +179,10 @@ def test_mask_cut_short_by_a_killed_server_is_never_used(tmp_path: Path) -> None
             assert st["progress"]["solved_share"] > 0.9 and st["progress"]["certified_share"] > 0.9
             r = http.get(f"/jobs/{jid}/results/mask.npy")
             assert r.headers["x-maxfs-partial"] == "false"
+            # server jobs get the previews and the depth that `maxfs run` makes (issue #13)
+            poll_until(lambda: (store / "previews" / "depth.png").exists(), 60, "previews written")
+            depth = http.get(f"/jobs/{jid}/results/depth.npy")
+            assert depth.status_code == 200, depth.text
         np.testing.assert_array_equal(JobStore.open(store, mode="r").read_mask(), sc.mask)
     finally:
         server.kill()
@@ -201,7 +207,11 @@ def test_results_of_an_unfinished_job_say_so_and_fetch_refuses_them(tmp_path: Pa
         assert not (tmp_path / "got.zarr").exists()
         r = _maxfs("fetch", jid, "-o", str(tmp_path / "got.zarr"), "--partial", *env)
         assert r.returncode == 0, r.stderr
-        assert (tmp_path / "got.zarr" / "zarr.json").exists()
+        assert (tmp_path / "got.zarr" / "results.zarr" / "zarr.json").exists()
+        assert not (tmp_path / "got.zarr" / "results.zarr" / "images").exists()  # results only
+        assert (tmp_path / "got.zarr" / "maxfs-job.json").exists()
+        r = _maxfs("fetch", jid, "-o", str(tmp_path / "all"), "--partial", "--inputs", *env)
+        assert r.returncode == 0 and (tmp_path / "all" / "results.zarr" / "images" / "zarr.json").exists()
     finally:
         server.kill()
         shutil.rmtree(tmp_path / "data", ignore_errors=True)
