@@ -22,15 +22,20 @@ from pathlib import Path as FsPath
 from typing import Annotated, Any, Literal
 
 import numpy as np
-from fastapi import APIRouter, Depends, FastAPI, Path, Request
+from fastapi import APIRouter, Depends, FastAPI, Path, Request, Security
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse, JSONResponse, Response
 from pydantic import BaseModel, ConfigDict, Field
 from starlette.background import BackgroundTask
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
+from service import openapi as api
+from service.dashboard import check_dashboard
+from service.docs import install_docs
 from service.jobs import TEMP_PREFIX, JobManager, npy_bytes
-from service.previews import PREVIEW_INPUTS, PREVIEWS, render
+from service.models import Health
+from service.page import install_page
+from service.previews import HTTP_PREVIEWS, inputs_of, render
 from service.settings import Settings
 from service.statuses import status_of
 from storage.imageio import decode_bytes, encode_png
@@ -210,20 +215,98 @@ class JobRoutes:
     def __init__(self, manager: JobManager, settings: Settings, tokens: TokenStore) -> None:
         self.m = manager
         self.s = settings
+        # the bearer scheme documents the auth (Swagger UI's "Authorize"); make_auth enforces it
+        bearer = [Security(api.BEARER)] if settings.auth else []
         self.router = APIRouter(
-            prefix="/jobs", tags=["jobs"], dependencies=[Depends(make_auth(settings, tokens))]
+            prefix="/jobs",
+            tags=["jobs"],
+            dependencies=[Depends(make_auth(settings, tokens)), *bearer],
+            responses=api.errors(401) if settings.auth else {},
         )
         r = self.router
-        r.add_api_route("", self.create, methods=["POST"], status_code=201)
-        r.add_api_route("", self.list, methods=["GET"])
-        r.add_api_route("/{job_id}", self.status, methods=["GET"])
-        r.add_api_route("/{job_id}", self.cancel, methods=["DELETE"])
-        r.add_api_route("/{job_id}/images/{index}", self.upload_image, methods=["PUT"])
-        r.add_api_route("/{job_id}/mask", self.upload_mask, methods=["PUT"])
-        r.add_api_route("/{job_id}/start", self.start, methods=["POST"], status_code=202)
-        r.add_api_route("/{job_id}/results.zip", self.zip, methods=["GET"])
-        r.add_api_route("/{job_id}/results/{name}.npy", self.result, methods=["GET"])
-        r.add_api_route("/{job_id}/previews/{name}.png", self.preview, methods=["GET"])
+        # JSON answers are documented by service.models (tests check live bodies against them) but
+        # not filtered through them: a field added to the job record reaches clients unchanged
+        job, binary = api.job_answer, {"response_class": Response}  # binary: no JSON 200
+        doc = {"response_model": None}  # no model inferred from the return annotation either
+        r.add_api_route(
+            "",
+            self.create,
+            methods=["POST"],
+            summary="Create a job",
+            status_code=201,
+            **doc,
+            responses=job(201) | api.errors(413, 422, 429, 507),
+        )
+        r.add_api_route(
+            "", self.list, methods=["GET"], summary="List jobs", **doc, responses=api.job_list_answer()
+        )
+        r.add_api_route(
+            "/{job_id}",
+            self.status,
+            methods=["GET"],
+            summary="Status of a job",
+            **doc,
+            responses=job() | api.errors(404, 422),
+        )
+        r.add_api_route(
+            "/{job_id}",
+            self.cancel,
+            methods=["DELETE"],
+            summary="Cancel a job",
+            **doc,
+            responses=job() | api.errors(404, 409, 422),
+        )
+        r.add_api_route(
+            "/{job_id}/images/{index}",
+            self.upload_image,
+            methods=["PUT"],
+            summary="Upload an image",
+            **doc,
+            responses=job() | api.errors(404, 409, 413, 422, 507),
+            openapi_extra=api.IMAGE_BODY,
+        )
+        r.add_api_route(
+            "/{job_id}/mask",
+            self.upload_mask,
+            methods=["PUT"],
+            summary="Upload the mask",
+            **doc,
+            responses=job() | api.errors(404, 409, 413, 422),
+            openapi_extra=api.MASK_BODY,
+        )
+        r.add_api_route(
+            "/{job_id}/start",
+            self.start,
+            methods=["POST"],
+            summary="Start or resume a job",
+            status_code=202,
+            **doc,
+            responses=job(202) | api.errors(404, 409, 422, 429),
+        )
+        r.add_api_route(
+            "/{job_id}/results.zip",
+            self.zip,
+            methods=["GET"],
+            summary="Download the results as a zip",
+            **binary,
+            responses=api.ZIP_ANSWER | api.errors(404, 409, 422),
+        )
+        r.add_api_route(
+            "/{job_id}/results/{name}.npy",
+            self.result,
+            methods=["GET"],
+            summary="Download an output array (NPY)",
+            **binary,
+            responses=api.NPY_ANSWER | api.errors(404, 409, 413, 422),
+        )
+        r.add_api_route(
+            "/{job_id}/previews/{name}.png",
+            self.preview,
+            methods=["GET"],
+            summary="Preview of an output (PNG)",
+            **binary,
+            responses=api.PNG_ANSWER | api.errors(404, 409, 422),
+        )
 
     def _body(self, request: Request, job_id: str) -> dict[str, Any]:
         rec = self.m.access(job_id, _user(request))
@@ -359,7 +442,12 @@ class JobRoutes:
         headers = {PARTIAL_HEADER: "true" if partial else "false"}
         return self.m.store(job_id), headers
 
-    async def result(self, job_id: str, name: str, request: Request) -> Response:
+    async def result(
+        self,
+        job_id: str,
+        name: Annotated[str, Path(description="output array", json_schema_extra=api.RESULT_NAME_SCHEMA)],
+        request: Request,
+    ) -> Response:
         """One output array as NPY (normal, albedo, albedo_rgb, inliers, inlier_count, optimal, mask).
 
         While the job is not done the answer is partial (unfinished tiles hold fill values)
@@ -377,13 +465,21 @@ class JobRoutes:
             headers={"Content-Disposition": f'attachment; filename="{name}.npy"'} | headers,
         )
 
-    async def preview(self, job_id: str, name: str, request: Request) -> Response:
-        """PNG preview: normal (paper colouring), albedo, inlier_count."""
-        if name not in PREVIEWS:
+    async def preview(
+        self,
+        job_id: str,
+        name: Annotated[str, Path(description="preview", json_schema_extra=api.PREVIEW_NAME_SCHEMA)],
+        request: Request,
+    ) -> Response:
+        """PNG preview: normal (paper colouring), albedo, inlier_count; depth (shaded relief) once the
+        job is done and its depth integrated."""
+        if name not in HTTP_PREVIEWS:
             self.m.access(job_id, _user(request))
-            raise NotFoundError(f"no preview {name!r}; available: {', '.join(PREVIEWS)}")
+            raise NotFoundError(f"no preview {name!r}; available: {', '.join(HTTP_PREVIEWS)}")
         store, headers = self._results_of(request, job_id)
-        arrays = {n: store.read_output(n) for n in store.output_names() if n in PREVIEW_INPUTS}
+        if name == "depth" and "depth" not in store.group:
+            raise NotFoundError(f"job {job_id} has no depth yet: it is integrated after the job is done")
+        arrays = {n: store.read_output(n) for n in store.output_names() if n in inputs_of(name)}
         return Response(
             encode_png(render(name, arrays, store.spec.k)), media_type="image/png", headers=headers
         )
@@ -410,6 +506,7 @@ def _error_response(exc: Exception) -> JSONResponse:
 def create_app(settings: Settings | None = None, manager: JobManager | None = None) -> FastAPI:
     """Build the application; the manager (and its Dask client) starts in the lifespan."""
     settings = settings or Settings()
+    check_dashboard(settings)  # loopback only; warns when bokeh (the [dashboard] extra) is missing
     manager = manager or JobManager(settings)
     tokens = TokenStore(settings.tokens_file)
 
@@ -426,11 +523,15 @@ def create_app(settings: Settings | None = None, manager: JobManager | None = No
         version="0.1.0",
         description="Robust photometric stereo by exact maximum feasible Lambertian subsystems.",
         lifespan=lifespan,
+        docs_url=None,  # served with local assets by install_docs: no CDN
+        redoc_url=None,
     )
     app.state.manager = manager
     app.include_router(JobRoutes(manager, settings, tokens).router)
+    install_docs(app)
+    install_page(app)
 
-    @app.get("/health", tags=["service"])
+    @app.get("/health", tags=["service"], response_model=Health)
     async def health() -> dict[str, Any]:
         """Liveness, without a token; says nothing about anyone's jobs."""
         return {"status": "ok", "auth": settings.auth}

@@ -26,10 +26,17 @@ def scaled_grey(values: NDArray[np.floating], top: float | None = None) -> NDArr
 PREVIEWS = ("normal", "albedo", "inlier_count")
 #: Output arrays the previews read (never ``inliers``, which is k times larger).
 PREVIEW_INPUTS = ("normal", "albedo", "albedo_rgb", "inlier_count")
+#: Previews the server renders: the above, and ``depth`` (a shaded relief) once the store has a depth.
+HTTP_PREVIEWS = (*PREVIEWS, "depth")
+
+
+def inputs_of(name: str) -> tuple[str, ...]:
+    """The output arrays the preview ``name`` reads."""
+    return {"normal": ("normal",), "albedo": ("albedo", "albedo_rgb"), "depth": ("depth",)}.get(name, (name,))
 
 
 def render(name: str, arrays: dict[str, NDArray], k: int) -> NDArray[np.uint8]:
-    """The preview image of one output (``normal``, ``albedo`` or ``inlier_count``)."""
+    """The preview image of one output (``normal``, ``albedo``, ``inlier_count`` or ``depth``)."""
     if name == "normal":
         return normal_rgb(arrays["normal"])
     if name == "albedo":
@@ -38,4 +45,8 @@ def render(name: str, arrays: dict[str, NDArray], k: int) -> NDArray[np.uint8]:
         return scaled_grey(arrays["albedo"])
     if name == "inlier_count":
         return scaled_grey(arrays["inlier_count"], top=float(k))
+    if name == "depth":
+        from worker.depth import relief_rgb  # the relief `maxfs run` writes as previews/depth.png
+
+        return relief_rgb(arrays["depth"])
     raise KeyError(name)
