@@ -215,3 +215,17 @@ def test_results_of_an_unfinished_job_say_so_and_fetch_refuses_them(tmp_path: Pa
     finally:
         server.kill()
         shutil.rmtree(tmp_path / "data", ignore_errors=True)
+
+
+def test_validating_lights_again_changes_no_bit() -> None:
+    """The input identity digests validated lights: validating twice (loader, CLI, store)
+    must not move them by an ulp, or a re-run would see "other inputs"."""
+    from storage.layout import JobSpec, lights_digest
+    from worker.problem import check_lights
+
+    rng = np.random.default_rng(0)
+    raw = synthetic.lights_uniform(96) * (1 + 1e-7 * rng.standard_normal((96, 1)))
+    once = check_lights(raw)
+    np.testing.assert_array_equal(check_lights(once), once)
+    spec = JobSpec(96, 4, 4, None, "uint16", raw, None).validate()
+    assert lights_digest(spec.validate().validate()) == lights_digest(spec)
