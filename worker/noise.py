@@ -5,23 +5,38 @@ usable observations closest to the current fit, three times, so specular highlig
 shadows and other outliers (under half) do not drive it.
 
 * **eps** is ``EPS_SIGMAS`` (3) robust sigmas of the residuals, measured in intensity
-  units (after division by the light intensities, before any response):
-  ``sigma = 1.4826 median |I_i - (L_i . n)^g|`` over the candidate observations of up to
-  4000 sampled pixels (usable, and not among the brightest ``drop_bright`` share, which
-  the solver rejects anyway: on glossy objects their misfit would otherwise set the
-  tolerance for all; cow: sigma 0.75 -> 0.49, mean error 15.0 -> 14.8). It never
-  falls below a floor that scales with the data: half a quantisation step for integer
-  input (:attr:`ObservationModel.step`), and
-  ``RANGE_FLOOR`` times the 99th percentile of the usable intensities (so 16-bit data
-  whose fit is exact, e.g. coplanar lights, get ~65 instead of 0.5).
-* **response** g (the model ``I = (L.n)^g``): for each g of a log-spaced grid, fit
-  ``L.n`` to ``I^(1/g)`` by LTS, then measure the fit where the data live, in the
-  original intensities: the median over pixels of the per-pixel median of
-  ``|I_i - (L_i . n)^g|``. The g with the smallest value wins (refined by a parabola
-  in log g). Measuring in the transformed units instead rewards any compression and
-  runs to the grid's end; in the original units the criterion has one clear minimum:
-  g = 1.00 on linear synthetic scenes, 1.18 / 2.09 / 1.09 on DiLiGenT cat / cow / pot1,
-  where the angular error is also smallest (bench/accuracy.py).
+  units (after division by the light intensities, before any response), over the
+  candidate observations of up to 4000 sampled pixels: usable, and not among the brightest
+  ``drop_bright`` share, which the solver rejects anyway (on glossy objects their misfit
+  would otherwise set the tolerance for every observation).
+
+  - ``paper`` model: ``sigma = 1.4826 median |I_i - (L_i . n)^g|`` over all of them;
+  - ``robust`` model (``by_intensity``): the same in each of :data:`NOISE_BINS` intensity
+    bins of equal counts, and sigma is the smallest: the noise where the model fits
+    best. Elsewhere the residuals grow with intensity through gloss and interreflection
+    (DiLiGenT cow: 0.25 in the darkest bin, 2.8 in the brightest), which are outliers
+    for Max-FS to reject, not noise to tolerate (cow 15.0 -> 14.4 deg, cat and pot1
+    unchanged).
+
+  It never falls below a floor that scales with the data: half a quantisation step for
+  integer input (:attr:`ObservationModel.step`, 0.5 for unscaled 8- or 16-bit values),
+  and ``RANGE_FLOOR`` times the 99th percentile of the usable intensities (so 16-bit
+  data that the model fits exactly, e.g. noise-free or coplanar, get about 1e-3 of
+  their range instead of 0.5).
+* **response** g (the model ``I = (L.n)^g``; the robust model's default): for each g
+  of a log-spaced grid over [1/3, 3], fit ``L.n`` to ``I^(1/g)`` by LTS, then measure the
+  fit where the data live, in the original intensities: the median over pixels of the
+  per-pixel median of ``|I_i - (L_i . n)^g|``. The best g, refined between its grid
+  neighbours and by a parabola in log g, wins. Measuring in the transformed units instead
+  rewards any compression and runs to the grid's end; in the original units the
+  criterion has one clear minimum: g = 1.00 on linear synthetic scenes, 1.18 / 2.09 /
+  1.09 on DiLiGenT cat / cow / pot1, where the angular error is smallest for cat and pot1
+  (cow keeps improving a little up to g ~ 2.5). Real captures deviate from Lambertian
+  most where they are bright (sheen, lobes), which g > 1 compresses; g < 1 undoes a
+  display encoding such as sRGB.
+
+Both use the pixels of :func:`worker.solve.eps_sample`, which depend on the image size
+and mask only, never on the tile grid, so every path gets the same numbers.
 """
 
 from __future__ import annotations
