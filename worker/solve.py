@@ -12,6 +12,7 @@ Example
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass
 from enum import IntEnum, StrEnum
@@ -320,20 +321,30 @@ def solve_tile(
     max_nodes: int = DEFAULT_MAX_NODES,
     milp_time_limit: float = DEFAULT_MILP_TIME_LIMIT,
 ) -> TileResult:
-    """Solve one tile of raw images ``(k, h, w[, C])``: the path every caller takes."""
+    """Solve one tile of raw images ``(k, h, w[, C])``: the path every caller takes.
+
+    Only the masked pixels are prepared and solved (the exact solver visits them in the
+    same raster order either way, so results do not depend on it); the others get the
+    values :func:`solve_pixels` gives an inactive pixel.
+    """
     k, h, w = raw.shape[:3]
-    grey, rgb, saturated = obs.prepare(raw)
+    flat = raw.reshape(k, h * w, *raw.shape[3:])
+    idx = None if mask is None else np.flatnonzero(mask.reshape(h * w))
+    if idx is not None and idx.size < h * w:
+        flat = flat[:, idx]
+    grey, rgb, saturated = obs.prepare(flat)
     r = solve_pixels(
         grey,
         L,
         th,
         solver,
         rgb=rgb,
-        active=None if mask is None else mask.reshape(h * w),
         outlier=saturated,
         max_nodes=max_nodes,
         milp_time_limit=milp_time_limit,
     )
+    if idx is not None and idx.size < h * w:
+        r = _scatter(r, idx, h * w, obs, L, th, solver)
     return TileResult(
         normal=r.normal.reshape(h, w, 3),
         albedo=r.albedo.reshape(h, w),
@@ -344,6 +355,28 @@ def solve_tile(
         nodes=int(r.nodes.sum()),
         source=r.source.reshape(h, w),
     )
+
+
+def _scatter(
+    r: PixelResult, idx: NDArray[np.intp], P: int, obs: ObservationModel, L, th: Thresholds, solver
+) -> PixelResult:
+    """``r`` (results of pixels ``idx``) spread over ``P`` pixels; the rest hold exactly what
+    :func:`solve_pixels` returns for an inactive pixel (computed, not restated)."""
+    k = r.inliers.shape[1]
+    C = None if r.albedo_rgb is None else r.albedo_rgb.shape[1]
+    blank = np.zeros((k, 1) if C is None else (k, 1, C))
+    g, rgb, sat = obs.prepare(blank)
+    fill = solve_pixels(g, L, th, solver, rgb=rgb, active=np.zeros(1, bool), outlier=sat)
+    out = {}
+    for name in (f.name for f in dataclasses.fields(PixelResult)):
+        part, f = getattr(r, name), getattr(fill, name)
+        if part is None:
+            out[name] = None
+            continue
+        full = np.repeat(f, P, axis=0)
+        full[idx] = part
+        out[name] = full
+    return PixelResult(**out)
 
 
 def solve(
