@@ -134,28 +134,30 @@ def test_estimates_do_not_depend_on_the_tile_size(tmp_path: Path) -> None:
 
 
 def test_source_codes_and_rank_deficient_pixels() -> None:
-    # six lights: four in the plane y = 0, two out of it
-    L = np.array([[0.5, 0, 0.866], [-0.5, 0, 0.866], [0.3, 0, 0.954], [-0.3, 0, 0.954]] + [[0.0] * 3] * 2)
-    L[4:] = [[0, 0.5, 0.866], [0.2, -0.5, 0.843]]
+    # seven lights: four in the plane y = 0, two well out of it, one barely (y = 0.01)
+    L = np.array([[0.5, 0, 0.866], [-0.5, 0, 0.866], [0.3, 0, 0.954], [-0.3, 0, 0.954]] + [[0.0] * 3] * 3)
+    L[4:] = [[0, 0.5, 0.866], [0.2, -0.5, 0.843], [0.0, 0.01, 1.0]]
     L /= np.linalg.norm(L, axis=1, keepdims=True)
     n = np.array([0.1, 0.2, 0.97]) * 100
     good = L @ n
-    I = np.tile(good, (4, 1))
+    I = np.tile(good, (5, 1))
     I[1, 4:] = 0.0  # only the coplanar lights are lit: no normal, never certified
+    I[4, 4:6] = 0.0  # coplanar lights and one barely out of the plane: badly conditioned
     I[2, 2:] = 0.0  # two candidates: too few for Max-FS; the robust model's fallback
     I[2, 4] = 0.2  # uses this third non-zero value (a shadow for both models' thresholds)
-    active = np.array([True, True, True, False])
+    active = np.array([True, True, True, False, True])
     for model in ("paper", "robust"):
-        th = make_thresholds(6, 1.0, model=model, response=1.0)
+        th = make_thresholds(7, 1.0, model=model, response=1.0)
         r = solve_pixels(I, L, th, "exact", active=active)
         assert r.source[0] == Source.CERTIFIED and r.optimal[0]
-        assert r.source[1] == Source.UNDETERMINED and not r.optimal[1] and np.isnan(r.normal[1]).all()
+        for p in (1, 4):
+            assert r.source[p] == Source.UNDETERMINED and not r.optimal[p] and np.isnan(r.normal[p]).all()
         assert r.source[3] == Source.MASKED and not r.optimal[3]
         assert r.source[2] == (Source.FIT if model == "robust" else Source.UNDETERMINED)
         assert np.isfinite(r.normal[2]).all() == (model == "robust") and not r.optimal[2]
-    l2 = solve_pixels(I, L, make_thresholds(6, 1.0), "l2")
+    l2 = solve_pixels(I, L, make_thresholds(7, 1.0), "l2")
     assert (l2.source[:3] == Source.FIT).all() and not l2.optimal.any()
-    capped = solve_pixels(I[:1], L, make_thresholds(6, 1.0), "milp", milp_time_limit=1e-6)
+    capped = solve_pixels(I[:1], L, make_thresholds(7, 1.0), "milp", milp_time_limit=1e-6)
     assert capped.source[0] in (Source.CERTIFIED, Source.BEST_FOUND)
     assert (capped.source[0] == Source.CERTIFIED) == capped.optimal[0]
 

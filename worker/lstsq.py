@@ -10,17 +10,24 @@ from numpy.typing import NDArray
 _COND = 1e-9
 
 
-def refit(I: NDArray[np.floating], sel: NDArray[np.bool_], L: NDArray[np.float64]) -> NDArray[np.float64]:
+def refit(
+    I: NDArray[np.floating],
+    sel: NDArray[np.bool_],
+    L: NDArray[np.float64],
+    max_cond: float | None = None,
+) -> NDArray[np.float64]:
     """Least-squares ``n`` per pixel over the selected images.
 
     Parameters
     ----------
-    I : (P, k) intensities; sel : (P, k) bool; L : (k, 3) lights.
+    I : (P, k) intensities; sel : (P, k) bool; L : (k, 3) lights; max_cond : largest
+    condition number of the selected lights (``sqrt`` of the normal matrix's) for which
+    ``n`` counts as determined.
 
     Returns
     -------
     (P, 3) float64; NaN where fewer than 3 images are selected or the selected
-    lights do not determine ``n``.
+    lights do not determine ``n`` (nearly coplanar, or above ``max_cond``).
     """
     w = sel.astype(np.float64)
     Iw = np.where(sel, I, 0.0)
@@ -28,6 +35,9 @@ def refit(I: NDArray[np.floating], sel: NDArray[np.bool_], L: NDArray[np.float64
     r = np.einsum("pk,ki->pi", Iw, L)
     tr = np.trace(G, axis1=1, axis2=2)
     ok = (sel.sum(axis=1) >= 3) & (np.linalg.det(G) > _COND * tr**3)
+    if max_cond is not None and ok.any():
+        ev = np.linalg.eigvalsh(G[ok])
+        ok[ok] = ev[:, 2] <= max_cond**2 * ev[:, 0]
     n = np.full(r.shape, np.nan)
     if ok.any():
         n[ok] = np.linalg.solve(G[ok], r[ok][..., None])[..., 0]

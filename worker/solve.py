@@ -28,6 +28,7 @@ from worker.noise import Estimate, estimate_model
 from worker.observations import ObservationModel
 from worker.problem import (
     DEFAULT_BOX_FACTOR,
+    MAX_LIGHT_CONDITION,
     MODEL_DEFAULTS,
     Model,
     Thresholds,
@@ -170,14 +171,14 @@ def solve_pixels(
                 pt, il, _, cert, _ = ms.solve_pixels(S[rows], valid[rows], (lo, hi), th.box_factor)
             point[rows], inl[rows], optimal[rows] = pt, il, cert
             source[rows] = np.where(cert, Source.CERTIFIED, Source.BEST_FOUND)
-    n = refit(S, inl, L)
+    n = refit(S, inl, L, MAX_LIGHT_CONDITION)  # a badly conditioned inlier set determines no normal
     if th.fallback and solver is not Solver.L2:
         need = np.flatnonzero(act & ~np.isfinite(n[:, 0]))
         if need.size:  # least squares on the non-zero, unsaturated observations
             fb = usable(I[need].T, _no_shadow(th)).T
             if outlier is not None:
                 fb &= ~outlier[need]
-            nf = refit(S[need], fb, L)
+            nf = refit(S[need], fb, L, MAX_LIGHT_CONDITION)
             got = np.isfinite(nf[:, 0])
             n[need[got]] = nf[got]
             inl[need] = fb & got[:, None]
