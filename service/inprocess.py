@@ -3,8 +3,8 @@ embedded default when the stack fits in memory.
 
 The exact kernel releases the GIL, so threads use every core without starting a
 cluster or warming worker processes, and the images need not go through Zarr before
-the first tile: they stay in memory while a background thread writes them to the
-store (for resume and the input identity). Every tile goes through
+the first tile: they stay in memory, and the store records only their digests (the
+input identity); a resumed run reads the folder again. Every tile goes through
 :func:`worker.task.compute_tile`, the function the Dask tasks run, so results are
 bit-identical to the distributed path. Tiles start in order of their masked-pixel
 count, largest first, so the object's few heavy tiles do not finish last.
@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, wait
+from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
 from pathlib import Path
 
 from numpy.typing import NDArray
@@ -38,16 +38,14 @@ def run_in_process(
     *,
     threads: int,
     images: NDArray | None = None,
-    pending: Future | None = None,
     on_progress: ProgressFn | None = None,
     progress_interval: float = 1.0,
     timings: Callable[[str, float], None] | None = None,
 ) -> JobRecord:
     """Run (or resume) every unfinished tile of the job at ``job_dir`` on ``threads`` threads.
 
-    ``images``: the whole stack ``(k, H, W[, C])`` in memory, read instead of the store;
-    ``pending``: the background write of those images into the store, awaited before the
-    job is recorded done. Ends ``done`` or ``failed`` (with a reason) like
+    ``images``: the whole stack ``(k, H, W[, C])`` in memory, read instead of the store
+    (which then holds only the images' digests). Ends ``done`` or ``failed`` (with a reason) like
     :func:`service.orchestrator.run_job`; a KeyboardInterrupt leaves the job resumable.
     """
     job_dir = Path(job_dir)
@@ -102,10 +100,6 @@ def run_in_process(
             # ones: a tile counts only once its done marker is written, so none is lost
             pool.shutdown(wait=not futures, cancel_futures=True)
         note("tiles", time.perf_counter() - t0)
-        if pending is not None:
-            t0 = time.perf_counter()
-            pending.result()  # the stack must be in the store before the job counts as done
-            note("wait for the image store write", time.perf_counter() - t0)
         count_finished(rec, store)
         rec.state, rec.finished_at = JobState.DONE, time.time()
         save()

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import asyncio
 import shutil
-import threading
 import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
@@ -59,7 +58,7 @@ def ingest(
             shutil.rmtree(out)
     if (out / GROUP_DIR / "zarr.json").exists():
         store = JobStore.open(out)
-        _check_same_inputs(store, ds, spec, out)
+        _check_same_inputs(store, ds, spec, out, copy_images)
         old = store.params
         comparable = old.unresolved() if params.eps is None else old
         if comparable != params:
@@ -86,7 +85,7 @@ def ingest(
     return store, note
 
 
-def _check_same_inputs(store: JobStore, ds: Dataset, spec: JobSpec, out: Path) -> None:
+def _check_same_inputs(store: JobStore, ds: Dataset, spec: JobSpec, out: Path, copy_images: bool) -> None:
     """Refuse a store that holds other inputs than ``ds``; complete a cut-short ingest.
 
     Images already stored are compared by digest (decoding each file once, unless the
@@ -104,16 +103,21 @@ def _check_same_inputs(store: JobStore, ds: Dataset, spec: JobSpec, out: Path) -
         raise differ(f"{s.k} images of {s.height} x {s.width} {s.dtype}: the image count, size or type")
     if store.lights_digest != lights_digest(spec):
         raise differ("the light directions or intensities")
+    stored, uploaded, known = store.digests(), store.uploaded(), store.known_images()
     fp = ds.fingerprint()
-    if fp is not None and fp == store.source_fingerprint and store.input_identity():
-        return
-    stored, uploaded = store.digests(), store.uploaded()
-    for i in range(ds.k):
-        img = ds.read(i)
-        if not uploaded[i]:
-            store.write_image(i, img)
-        elif array_digest(img) != stored[i]:
-            raise differ(f"the images (image {i} first)")
+    same_files = fp is not None and fp == store.source_fingerprint and store.input_identity() is not None
+    if not (same_files and (uploaded.all() or not copy_images)):
+        for i in range(ds.k):
+            if same_files and uploaded[i]:
+                continue
+            img = ds.read(i)
+            d = array_digest(img)
+            if known[i] and d != stored[i]:
+                raise differ(f"the images (image {i} first)")
+            if copy_images and not uploaded[i]:
+                store.write_image(i, img)
+            elif not known[i]:
+                store.record_digest(i, d)
     state = store.mask_state()
     if ds.mask is None:
         if state != "default":
@@ -197,45 +201,34 @@ def run_folder(
         on_note(note)
     if store.done_grid().all() and (out / "previews").is_dir():
         return store, load_record(out)  # finished earlier with these inputs and parameters
-    images, pending, stop = None, None, threading.Event()
-    writer = ThreadPoolExecutor(1, thread_name_prefix="maxfs-store-write")
-    try:
-        if not store.uploaded().all():  # a new store whose images stay in memory
+    if in_process:
+        images = None
+        if not store.uploaded().all():  # the stack stays in memory; only its digests are stored
             with tm.phase("read images"):
-                images = np.empty((ds.k, *store.spec.image_shape), dtype=ds.dtype)
-                for i in range(ds.k):
-                    images[i] = ds.read(i)
-            pending = writer.submit(_write_images, store, images, stop, tm)
-        if in_process:
-            rec = run_in_process(
-                out,
-                threads=workers,
-                images=images,
-                pending=pending,
-                on_progress=on_progress,
-                timings=tm.add,
-            )
-        else:
-            with tm.phase("cluster run (start, tiles, stop)"):
-                rec = asyncio.run(_run(out, settings, on_progress))
-    except BaseException:
-        stop.set()  # the writer stops after its image; a cut-short image stays marked missing
-        writer.shutdown(wait=False)
-        raise
-    writer.shutdown(wait=True)
+                images = read_stack(ds, store, workers)
+        rec = run_in_process(out, threads=workers, images=images, on_progress=on_progress, timings=tm.add)
+    else:
+        with tm.phase("cluster run (start, tiles, stop)"):
+            rec = asyncio.run(_run(out, settings, on_progress))
     if rec.state is JobState.DONE:
         finish(out, tm)
     return store, rec
 
 
-def _write_images(store: JobStore, images: NDArray, stop: threading.Event, tm: Timings) -> None:
-    """Write a stack held in memory into the store, image by image (background thread)."""
-    t0 = time.perf_counter()
-    for i in range(images.shape[0]):
-        if stop.is_set():
-            return
-        store.write_image(i, images[i])
-    tm.add("store images (background)", time.perf_counter() - t0)
+def read_stack(ds: Dataset, store: JobStore, threads: int) -> NDArray:
+    """The whole stack in memory, decoded on ``threads`` threads (PNG/TIFF decoders release the
+    GIL); each image's digest is recorded in the store where it is not yet known."""
+    images = np.empty((ds.k, *store.spec.image_shape), dtype=ds.dtype)
+    known = store.known_images()
+
+    def one(i: int) -> None:
+        images[i] = ds.read(i)
+        if not known[i]:
+            store.record_digest(i, array_digest(images[i]))
+
+    with ThreadPoolExecutor(max(1, threads), thread_name_prefix="maxfs-read") as pool:
+        list(pool.map(one, range(ds.k)))
+    return images
 
 
 def write_previews(store: JobStore) -> list[Path]:

@@ -548,10 +548,20 @@ class JobStore:
             return "incomplete"
         return "default" if not any(d) else "complete"
 
+    def record_digest(self, i: int, digest: bytes) -> None:
+        """Record image ``i``'s digest without storing its pixels (a run that keeps the stack
+        in memory): the input identity holds, ``uploaded[i]`` stays False."""
+        self.check_index(i)
+        self.group["input_digests"][i] = np.frombuffer(digest, np.uint8)
+
+    def known_images(self) -> NDArray[np.bool_]:
+        """Images whose digest is recorded (stored, or digested by an in-memory run)."""
+        return np.asarray(self.group["input_digests"][: self.spec.k]).any(axis=1)
+
     def input_identity(self) -> str | None:
         """A digest of every input (images, mask, lights, intensities, shape); None while an
-        image is missing or the mask is incomplete."""
-        if not self.uploaded().all() or self.mask_state() == "incomplete":
+        image's digest is unknown or the mask is incomplete."""
+        if not self.known_images().all() or self.mask_state() == "incomplete":
             return None
         s = self.spec
         h = hashlib.sha256(f"{s.k}|{s.height}|{s.width}|{s.channels}|{s.dtype}|".encode())

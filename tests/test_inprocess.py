@@ -18,7 +18,7 @@ from storage.layout import JobStore
 from worker import synthetic
 
 MAXFS = str(Path(sys.executable).parent / "maxfs")
-ARRAYS = ("normal", "albedo", "inliers", "inlier_count", "optimal", "tile_stats", "done", "images")
+ARRAYS = ("normal", "albedo", "inliers", "inlier_count", "optimal", "tile_stats", "done", "input_digests")
 
 
 def _phases(stderr: str) -> list[str]:

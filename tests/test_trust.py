@@ -111,7 +111,7 @@ def test_summary_counts_are_honest(tmp_path: Path) -> None:
     dark = tmp_path / "dark"
     sc = synthetic.bump_scene(8, 48)
     write_npy_folder(dark, np.zeros_like(sc.images, dtype=np.uint8), sc.lights, sc.mask)
-    r = _maxfs("run", str(dark), "-o", str(tmp_path / "dark.zarr"), "--eps", "1")
+    r = _maxfs("run", str(dark), "-o", str(tmp_path / "dark.zarr"), "--eps", "1", "--response", "1")
     assert r.returncode == 0, r.stderr
     assert _shares(r.stdout) == (0.0, 0.0)
     assert "WARNING: only 0.0% of the" in r.stderr
