@@ -312,6 +312,9 @@ def cmd_serve(args: argparse.Namespace) -> int:
         if v is not None
     }
     settings = Settings(**overrides)
+    from service.cluster import cluster_kind
+
+    cluster_kind(settings)  # an unknown --cluster, or address without a scheduler: refused before starting
     if not settings.auth and settings.host not in LOOPBACK:
         raise MaxfsError(
             f"refusing to serve without auth on {settings.host}: anyone who can reach it could read and "
