@@ -31,9 +31,8 @@ def refit(
     """
     w = sel.astype(np.float64)
     Iw = np.where(sel, I, 0.0)
-    # two matrix products (BLAS) instead of einsum: 5-10x faster at k = 96
-    G = (w @ (L[:, :, None] * L[:, None, :]).reshape(-1, 9)).reshape(-1, 3, 3)
-    r = Iw @ L
+    G = np.einsum("pk,ki,kj->pij", w, L, L)
+    r = np.einsum("pk,ki->pi", Iw, L)
     tr = np.trace(G, axis1=1, axis2=2)
     ok = (sel.sum(axis=1) >= 3) & (np.linalg.det(G) > _COND * tr**3)
     if max_cond is not None and ok.any():
