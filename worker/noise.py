@@ -78,8 +78,8 @@ def _rows(usable: NDArray[np.bool_], sample: int, seed: int) -> NDArray[np.intp]
     rows = np.flatnonzero(usable.sum(axis=1) >= MIN_USABLE)
     if rows.size == 0:
         raise InvalidInputError(
-            f"cannot estimate eps: no pixel has {MIN_USABLE} or more usable observations; "
-            "give eps explicitly"
+            f"cannot estimate eps: no pixel has {MIN_USABLE} or more usable observations (too few "
+            "images, or most of them dark or saturated); give eps explicitly (and --response 1)"
         )
     if rows.size > sample:
         rows = np.sort(np.random.default_rng(seed).choice(rows, sample, replace=False))
@@ -238,7 +238,17 @@ def estimate_model(
     """Resolve ``"auto"`` eps and response on a sample of pixels: the response first
     (:func:`select_response`, on every usable observation), then eps with it
     (:func:`estimate_noise`, on the candidates)."""
-    g = select_response(I, usable, L) if response == "auto" else float(response)
+    if response != "auto":
+        g = float(response)
+    else:
+        try:
+            g = select_response(I, usable, L)
+        except InvalidInputError:
+            if eps == "auto":
+                raise
+            # too few observations per pixel (e.g. k < 6) to tell a response from the data:
+            # the linear sensor the paper assumes; the value used is recorded as usual
+            g = 1.0
     if eps == "auto":
         e, sigma = estimate_noise(
             I, usable, L, step=step, response=g, drop_bright=drop_bright, by_intensity=by_intensity
