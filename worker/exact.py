@@ -42,10 +42,13 @@ is returned among ties may differ from an earlier version of this kernel.
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
+from worker import cancel
 from worker.problem import REL_TOL
 
 _STACK = 256  # DFS depth bound; a box this deep is far below ``hmin`` already
@@ -558,9 +561,26 @@ def _project(L, a, b, idx, m, U, margin, n0, sweeps, lo, hi, best, bp):  # pragm
 
 @njit(cache=True, nogil=True)
 def solve_exact(
-    I, slab_lo, slab_hi, valid, L, box_factor, max_nodes, above, point, inl, count, nodes, certified
+    I,
+    slab_lo,
+    slab_hi,
+    valid,
+    L,
+    box_factor,
+    max_nodes,
+    above,
+    point,
+    inl,
+    count,
+    nodes,
+    certified,
+    start=0,
+    stop=-1,
 ):  # pragma: no cover - numba
-    """Solve every pixel of a batch; results are written into the output arrays.
+    """Solve pixels ``start`` to ``stop`` (default: every pixel) of a batch; results are written
+    into the output arrays. Pixels before ``start`` must hold their results already (an earlier
+    call): they seed the first ones exactly as in one call, so a batch split into ranges gives
+    the same answer bit for bit.
 
     Parameters
     ----------
@@ -598,10 +618,18 @@ def solve_exact(
     hi = np.zeros(k)
     margin = np.zeros(k)
     sel = np.zeros(k, np.bool_)
-    prev = -1
+    prev = start - 1  # the last solved pixel (at least 3 usable images) before start
+    while prev >= 0:
+        usable = 0
+        for i in range(k):
+            if valid[prev, i]:
+                usable += 1
+        if usable >= 3:
+            break
+        prev -= 1
     bp = np.zeros(3)
     tmp = np.zeros(3)
-    for px in range(P):
+    for px in range(start, P if stop < 0 else stop):
         m = 0
         maxb = 0.0
         eps = 0.0  # the widest half-width: the scale of seed slack and of hmin
@@ -725,6 +753,11 @@ def exact_pixels(
     (optional, ``(P,)``) names for each pixel an earlier pixel of the batch whose
     solution is a second seed (the pixel above; see :func:`above_index`), -1 for
     none. Seeds change the work, never the count.
+
+    In a thread with cancel points (:func:`worker.cancel.cancel_points`: a tile task) the
+    pixels are solved in consecutive ranges of about :data:`worker.cancel.BATCH_SECONDS` of
+    work each, with a cancel point between two; each range is seeded by the ones before it,
+    so the answer is bit-identical to one call.
     """
     P, k = I.shape
     point = np.empty((P, 3))
@@ -735,7 +768,7 @@ def exact_pixels(
     up = np.full(P, -1, dtype=np.int64) if above is None else np.ascontiguousarray(above, dtype=np.int64)
     if up.shape != (P,):
         raise ValueError(f"above must have shape ({P},), got {up.shape}")
-    solve_exact(
+    args = (
         np.ascontiguousarray(I, dtype=np.float64),
         np.ascontiguousarray(lo, dtype=np.float64),
         np.ascontiguousarray(hi, dtype=np.float64),
@@ -750,6 +783,22 @@ def exact_pixels(
         nodes,
         cert,
     )
+    if not cancel.active():
+        solve_exact(*args, 0, P)
+        return point, inl, count, nodes, cert
+    s, n = 0, 16
+    while s < P:
+        e = min(P, s + n)
+        t0 = time.perf_counter()
+        solve_exact(*args, s, e)
+        took = time.perf_counter() - t0
+        s = e
+        if s < P:
+            cancel.checkpoint()
+        if took < cancel.BATCH_SECONDS / 2:
+            n *= 2
+        elif took > 2 * cancel.BATCH_SECONDS:
+            n = max(1, n // 2)
     return point, inl, count, nodes, cert
 
 

@@ -16,6 +16,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from storage.layout import JobStore
+from worker.cancel import TileCancelled, cancel_points
 from worker.errors import StoreError
 from worker.noise import Estimate
 from worker.problem import make_thresholds
@@ -28,7 +29,7 @@ class TileOutcome:
     """What a tile task reports back to the orchestrator."""
 
     index: int
-    status: str  # "done" | "skipped" (already done) | "cancelled"
+    status: str  # "done" | "skipped" (already done) | "cancelled" | "overtime" (past the time limit)
     pixels: int = 0  # pixels in the tile
     active: int = 0  # pixels inside the mask
     solved: int = 0  # pixels that got a normal
@@ -37,10 +38,10 @@ class TileOutcome:
     seconds: float = 0.0
 
 
-def run_tile(job_dir: str, tile_index: int, params_hash: str) -> TileOutcome:
+def run_tile(job_dir: str, tile_index: int, params_hash: str, time_limit: float | None = None) -> TileOutcome:
     """Compute tile ``tile_index`` of the job at ``job_dir``; write outputs, then the done marker."""
     store = JobStore.open(Path(job_dir))
-    return compute_tile(store, tile_index, params_hash)
+    return compute_tile(store, tile_index, params_hash, time_limit=time_limit)
 
 
 def compute_tile(
@@ -48,10 +49,17 @@ def compute_tile(
     tile_index: int,
     params_hash: str,
     read_images: Callable[[Tile], NDArray] | None = None,
+    *,
+    time_limit: float | None = None,
 ) -> TileOutcome:
     """Compute one tile of ``store`` and write it: what every path runs (Dask task or in-process
     thread), so their results are bit-identical. ``read_images`` gives the tile's raw images
-    ``(k, h, w[, C])`` from elsewhere (e.g. a stack held in memory); default: the store."""
+    ``(k, h, w[, C])`` from elsewhere (e.g. a stack held in memory); default: the store.
+
+    The solve has cancel points (:mod:`worker.cancel`): within about a second of the job's
+    cancel flag appearing the task stops, writes nothing and answers "cancelled", so its
+    worker is free for other tiles. With ``time_limit`` (seconds), a tile still computing after
+    that long stops the same way and answers "overtime" (the job then fails, naming the tile)."""
     params = store.params
     if params.eps is None or params.digest() != params_hash:
         raise StoreError(f"job parameters changed since tile {tile_index} was scheduled; restart the job")
@@ -77,16 +85,30 @@ def compute_tile(
         box_factor=params.box_factor,
         **params.threshold_options(),
     )
-    res = solve_tile(
-        raw,
-        spec.lights,
-        store.observation_model,
-        th,
-        params.solver,
-        mask,
-        max_nodes=params.max_nodes,
-        milp_time_limit=params.milp_time_limit,
-    )
+    deadline = None if not time_limit else time.monotonic() + time_limit
+
+    def stop_reason() -> str | None:
+        if store.cancel_requested:
+            return "cancelled"
+        if deadline is not None and time.monotonic() > deadline:
+            return "overtime"
+        return None
+
+    try:
+        with cancel_points(stop_reason):
+            res = solve_tile(
+                raw,
+                spec.lights,
+                store.observation_model,
+                th,
+                params.solver,
+                mask,
+                max_nodes=params.max_nodes,
+                milp_time_limit=params.milp_time_limit,
+            )
+    except TileCancelled as e:
+        store.log_run(tile_index, str(e))
+        return TileOutcome(tile_index, str(e), pixels=mask.size, seconds=time.perf_counter() - t0)
     solved = np.isfinite(res.normal[..., 0]) & mask
     stats = (int(mask.sum()), int(solved.sum()), int((res.optimal & solved).sum()))
     store.write_tile(t, res, token, stats)

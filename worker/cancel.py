@@ -1,0 +1,70 @@
+"""Cancel points inside a tile's solve: a running tile notices a cancel within seconds.
+
+The solvers call :func:`checkpoint` between pixel batches (the exact kernel, see
+:func:`worker.exact.exact_pixels`) and between pixels (the MILP). It does nothing
+unless the calling thread runs inside :func:`cancel_points`, which installs a
+check (e.g. "does the job's cancel flag exist?") called at most every
+``interval`` seconds; when the check is true, :class:`TileCancelled` is raised and
+unwinds the solve. The hook is per thread, so tile tasks on other threads of the
+same worker process are not affected, and code that never installs one (the
+library's :func:`worker.solve.solve`, tests) runs exactly as before.
+
+Where the batches fall never changes a result: the exact kernel solves a batch
+with the previous batches' points as its seeds, exactly as in one call.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+
+from worker.errors import JobCancelledError
+
+#: Seconds of solver work between two cancel points of the exact kernel (batches adapt to it).
+BATCH_SECONDS = 0.25
+
+_local = threading.local()
+
+
+class TileCancelled(JobCancelledError):
+    """Raised at a cancel point of a tile whose job was cancelled (or ran past its time limit)."""
+
+
+class _Hook:
+    def __init__(self, check: Callable[[], str | None], interval: float) -> None:
+        self.check, self.interval, self.next = check, interval, 0.0
+
+    def __call__(self) -> None:
+        now = time.monotonic()
+        if now < self.next:
+            return
+        self.next = now + self.interval
+        reason = self.check()
+        if reason:
+            raise TileCancelled(reason)
+
+
+@contextmanager
+def cancel_points(check: Callable[[], str | None], interval: float = 0.5) -> Iterator[None]:
+    """Within this block, :func:`checkpoint` calls ``check()`` (at most every ``interval`` s)
+    in this thread and raises :class:`TileCancelled` with its answer when it is not empty."""
+    before = getattr(_local, "hook", None)
+    _local.hook = _Hook(check, interval)
+    try:
+        yield
+    finally:
+        _local.hook = before
+
+
+def active() -> bool:
+    """Whether this thread has cancel points (the solvers batch their work only then)."""
+    return getattr(_local, "hook", None) is not None
+
+
+def checkpoint() -> None:
+    """A cancel point: raise :class:`TileCancelled` if this thread's check says so."""
+    hook = getattr(_local, "hook", None)
+    if hook is not None:
+        hook()
