@@ -11,6 +11,7 @@ from worker.errors import (
     NotFoundError,
     PayloadTooLargeError,
     QuotaError,
+    RequestTimeoutError,
     StoreError,
 )
 
@@ -19,6 +20,7 @@ STATUS: list[tuple[type[Exception], int]] = [
     (AuthError, 401),
     (NotFoundError, 404),
     (ConflictError, 409),
+    (RequestTimeoutError, 408),
     (PayloadTooLargeError, 413),
     (InvalidInputError, 422),
     (QuotaError, 429),

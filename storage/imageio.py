@@ -7,6 +7,8 @@ through imagecodecs and TIFF through tifffile; Pillow reads the rest (TGA, BMP, 
 from __future__ import annotations
 
 import io
+import struct
+from dataclasses import dataclass
 from pathlib import Path
 
 import imagecodecs
@@ -15,7 +17,7 @@ import tifffile
 from numpy.typing import NDArray
 from PIL import Image
 
-from worker.errors import InvalidInputError
+from worker.errors import InvalidInputError, PayloadTooLargeError
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 TIFF_MAGICS = (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+")
@@ -55,6 +57,124 @@ def decode_bytes(data: bytes, what: str = "image") -> NDArray:
     except Exception as e:  # decoders raise many types for corrupt data
         raise InvalidInputError(f"{what}: cannot decode image ({type(e).__name__}: {e})") from None
     return _normalise(np.asarray(arr), what)
+
+
+@dataclass(frozen=True)
+class ImageHeader:
+    """What an encoded image declares, read from its header without decoding any pixel."""
+
+    format: str  # "PNG", "TIFF" or Pillow's format name
+    shape: tuple[int, ...]  # as :func:`decode_bytes` returns it: (H, W) or (H, W, 3)
+    dtype: np.dtype  # ditto (float TIFFs become float32)
+    pages: int  # images in the file (TIFF pages, animation frames)
+    decoded_bytes: int  # what the decoder allocates, before alpha is dropped
+
+
+def _normal_shape(shape: tuple[int, ...]) -> tuple[int, ...]:
+    """:func:`_normalise`'s shape rule, on a shape."""
+    if len(shape) == 3 and shape[2] in (1, 2):
+        return shape[:2]
+    if len(shape) == 3 and shape[2] == 4:
+        return (*shape[:2], 3)
+    return tuple(shape)
+
+
+def _normal_dtype(dtype: np.dtype, what: str) -> np.dtype:
+    if dtype in (np.uint8, np.uint16, np.float32):
+        return np.dtype(dtype)
+    if np.issubdtype(dtype, np.floating):
+        return np.dtype(np.float32)
+    raise InvalidInputError(f"{what}: unsupported pixel type {dtype}; use 8/16-bit or float32")
+
+
+#: Pillow modes that :func:`_pil_array` returns as 16-bit or float (the rest as 8-bit).
+_PIL_DTYPES = {"I;16": np.uint16, "I;16B": np.uint16, "I;16L": np.uint16, "I": np.uint16, "F": np.float32}
+#: PNG colour type -> channels the decoder returns (palette images come out RGB, or RGBA with tRNS).
+_PNG_CHANNELS = {0: 1, 2: 3, 3: 4, 4: 2, 6: 4}
+
+
+def probe_bytes(data: bytes, what: str = "image") -> ImageHeader:
+    """The header of PNG, TIFF or Pillow-readable bytes: size, pixel type and page count.
+
+    Nothing is decompressed, so a small file that declares a huge image (a decompression
+    bomb) costs nothing here; compare the header with what is expected before decoding.
+    """
+    try:
+        if data.startswith(PNG_MAGIC):
+            if len(data) < 33 or data[12:16] != b"IHDR":
+                raise ValueError("no IHDR chunk after the PNG signature")
+            w, h = struct.unpack(">II", data[16:24])
+            depth, colour = data[24], data[25]
+            if colour not in _PNG_CHANNELS or depth not in (1, 2, 4, 8, 16):
+                raise ValueError(f"bit depth {depth} with colour type {colour} is not valid PNG")
+            c = _PNG_CHANNELS[colour] if colour != 3 else 3
+            dtype = np.dtype(np.uint16 if depth == 16 else np.uint8)
+            raw = (h, w) if c == 1 else (h, w, c)
+            return ImageHeader("PNG", _normal_shape(raw), dtype, 1, h * w * 4 * dtype.itemsize)
+        if data[:4] in TIFF_MAGICS:
+            with tifffile.TiffFile(io.BytesIO(data)) as tif:
+                pages = len(tif.pages)
+                page = tif.pages.first
+                raw, dt = tuple(int(n) for n in page.shape), np.dtype(page.dtype)
+            n = int(np.prod(raw)) * dt.itemsize
+            return ImageHeader("TIFF", _normal_shape(raw), _normal_dtype(dt, what), pages, n)
+        with Image.open(io.BytesIO(data)) as im:
+            w, h = im.size
+            mode, frames, fmt = im.mode, int(getattr(im, "n_frames", 1)), str(im.format)
+        dtype = np.dtype(_PIL_DTYPES.get(mode, np.uint8))
+        raw = {"L": (h, w), "LA": (h, w, 2), "RGBA": (h, w, 4)}.get(mode, (h, w, 3))
+        if dtype != np.uint8:
+            raw = (h, w)
+        return ImageHeader(fmt, _normal_shape(raw), dtype, frames, h * w * 4 * 4)
+    except InvalidInputError:
+        raise
+    except Exception as e:  # readers raise many types for corrupt headers
+        raise InvalidInputError(f"{what}: cannot decode image ({type(e).__name__}: {e})") from None
+
+
+def decode_checked(
+    data: bytes,
+    what: str,
+    *,
+    max_bytes: int,
+    shape: tuple[int, ...] | None = None,
+    hw: tuple[int, int] | None = None,
+    dtype: str | np.dtype | None = None,
+) -> NDArray:
+    """Decode one image only if its header fits: one page, ``shape`` (or height and width
+    ``hw``), ``dtype``, and at most ``max_bytes`` decoded. A mismatch is refused before any
+    pixel is decompressed; the decoder's answer is checked against the header again."""
+    head = probe_bytes(data, what)
+    if head.pages != 1:
+        raise InvalidInputError(f"{what}: the file holds {head.pages} images (pages or frames); send one")
+    if shape is not None and head.shape != tuple(shape):
+        raise InvalidInputError(f"{what} has shape {head.shape}, the job expects {tuple(shape)}")
+    if hw is not None and head.shape[:2] != tuple(hw):
+        raise InvalidInputError(f"{what} has shape {head.shape}, the job's images are {hw[0]} x {hw[1]}")
+    if dtype is not None and head.dtype != np.dtype(dtype):
+        raise InvalidInputError(f"{what} has dtype {head.dtype}, the job expects {np.dtype(dtype)}")
+    if head.decoded_bytes > max_bytes:
+        raise PayloadTooLargeError(
+            f"{what}: decoding would take {head.decoded_bytes} bytes, more than the {max_bytes} allowed"
+        )
+    try:
+        if head.format == "PNG":
+            arr = imagecodecs.png_decode(data)
+        elif head.format == "TIFF":
+            with tifffile.TiffFile(io.BytesIO(data)) as tif:
+                arr = tif.pages.first.asarray()
+        else:
+            with Image.open(io.BytesIO(data)) as im:
+                im.load()
+                arr = _pil_array(im)
+    except Exception as e:  # decoders raise many types for corrupt data
+        raise InvalidInputError(f"{what}: cannot decode image ({type(e).__name__}: {e})") from None
+    arr = _normalise(np.asarray(arr), what)
+    if arr.shape != head.shape or arr.dtype != head.dtype:
+        raise InvalidInputError(
+            f"{what}: decoded to {arr.shape} {arr.dtype}, but its header says {head.shape} {head.dtype}"
+        )
+    return arr
 
 
 def _pil_array(im: Image.Image) -> NDArray:

@@ -15,7 +15,7 @@ from enum import StrEnum
 from pathlib import Path
 from typing import Any
 
-from worker.errors import StoreError
+from worker.errors import ConflictError, StoreError
 
 RECORD_NAME = "maxfs-job.json"
 #: Below this share of solved masked pixels a result comes with a loud warning.
@@ -46,6 +46,46 @@ class JobState(StrEnum):
     def accepts_uploads(self) -> bool:
         return self in (JobState.CREATED, JobState.UPLOADING)
 
+    def after(self, event: str) -> JobState:
+        """The state an ``event`` leads to from this one (:data:`TRANSITIONS`); a
+        :class:`ConflictError` naming both when the table has no such move."""
+        try:
+            return TRANSITIONS[event][self]
+        except KeyError:
+            if event not in TRANSITIONS:
+                raise ValueError(f"unknown job event {event!r}") from None
+            raise ConflictError(f"{EVENT_WORDS[event]} is not possible: the job is {self.value}") from None
+
+
+_S = JobState
+#: Every change of a job's state: event -> {state before: state after}. A move that is not
+#: here is refused (409). The server applies them under the job's lock (service.jobs), so
+#: two requests on one job (an upload and a cancel, a start and a cancel) happen one after
+#: the other, each on the state the other left.
+TRANSITIONS: dict[str, dict[JobState, JobState]] = {
+    "upload": {_S.CREATED: _S.UPLOADING, _S.UPLOADING: _S.UPLOADING},  # an image
+    "mask": {_S.CREATED: _S.CREATED, _S.UPLOADING: _S.UPLOADING},
+    "start": {_S.CREATED: _S.QUEUED, _S.UPLOADING: _S.QUEUED, _S.FAILED: _S.QUEUED, _S.CANCELLED: _S.QUEUED},
+    "resume": {_S.QUEUED: _S.QUEUED, _S.RUNNING: _S.QUEUED},  # the server restarted mid-run
+    "run": {_S.QUEUED: _S.RUNNING},
+    "finish": {_S.RUNNING: _S.DONE},
+    "fail": {_S.QUEUED: _S.FAILED, _S.RUNNING: _S.FAILED},
+    "cancel": {s: _S.CANCELLED for s in (_S.CREATED, _S.UPLOADING, _S.QUEUED, _S.RUNNING)},
+    # delete (purge): only a job nothing runs for; its folder goes, so there is no state after
+    "delete": {s: s for s in (_S.CREATED, _S.UPLOADING, _S.DONE, _S.FAILED, _S.CANCELLED)},
+}
+EVENT_WORDS = {
+    "upload": "uploading an image",
+    "mask": "setting the mask",
+    "start": "starting",
+    "resume": "resuming",
+    "run": "running",
+    "finish": "finishing",
+    "fail": "failing",
+    "cancel": "cancelling",
+    "delete": "deleting",
+}
+
 
 @dataclass
 class JobRecord:
@@ -67,6 +107,9 @@ class JobRecord:
     solved_pixels: int = 0  # ... that got a normal
     pixel_rate: float | None = None  # pixels per second in this run
     eps: float | None = None
+    owner_uid: str = ""  # the owner's token identity (storage.tokens): a re-created name is someone else
+    label: str | None = None  # the client's name for the submission (maxfs submit resumes by it)
+    uploaded_images: list[int] = field(default_factory=list)  # indices of the images stored, before start
 
     @property
     def solved_share(self) -> float | None:

@@ -7,6 +7,12 @@ compare the presented token's hash with every stored hash using
 :func:`hmac.compare_digest`, so timing reveals neither a prefix nor which user
 matched. The server re-reads the file when it changes, so ``maxfs token
 create`` takes effect without a restart.
+
+Jobs belong to a user's name *and* identity (``uid``, made with the first token).
+``maxfs token create NAME --replace`` rotates the token of the same person, who keeps
+their jobs; ``maxfs token revoke NAME`` followed by ``create NAME`` makes a new
+person under the old name, who does not see (or fetch, or delete) the old jobs.
+Those stay visible to admins and go with the retention period.
 """
 
 from __future__ import annotations
@@ -34,6 +40,9 @@ class User:
 
     name: str
     admin: bool = False
+    #: Identity of the token's holder: kept when the token is replaced (``--replace``), new
+    #: when a revoked name is given a token again, so that person does not get the old jobs.
+    uid: str = ""
 
 
 #: The user of a server with auth turned off, and of ``maxfs run``.
@@ -94,7 +103,13 @@ class TokenStore:
         if name in users and not replace:
             raise ConflictError(f"user {name!r} already has a token; revoke it first or pass --replace")
         token = TOKEN_PREFIX + secrets.token_urlsafe(32)
-        users[name] = {"sha256": _digest(token), "admin": bool(admin), "created_at": time.time()}
+        uid = users[name].get("uid") if name in users else None  # --replace: the same person
+        users[name] = {
+            "sha256": _digest(token),
+            "admin": bool(admin),
+            "created_at": time.time(),
+            "uid": uid or secrets.token_hex(8),
+        }
         self._save(users)
         return token
 
@@ -106,7 +121,7 @@ class TokenStore:
         self._save(users)
 
     def users(self) -> list[User]:
-        return [User(n, bool(u.get("admin"))) for n, u in sorted(self._load().items())]
+        return [User(n, bool(u.get("admin")), str(u.get("uid", ""))) for n, u in sorted(self._load().items())]
 
     def authenticate(self, token: str) -> User | None:
         """The user holding ``token``, or None. Every stored hash is compared, in constant time."""
@@ -114,5 +129,5 @@ class TokenStore:
         found: User | None = None
         for name, u in self._load().items():
             if hmac.compare_digest(presented, str(u.get("sha256", "")).encode()):
-                found = User(name, bool(u.get("admin")))
+                found = User(name, bool(u.get("admin")), str(u.get("uid", "")))
         return found

@@ -55,3 +55,11 @@ class QuotaError(MaxfsError):
 
 class InsufficientStorageError(MaxfsError, OSError):
     """The server's disk cannot hold what the request would store."""
+
+
+class RequestTimeoutError(MaxfsError, TimeoutError):
+    """A request body stopped arriving (no data for the server's idle timeout)."""
+
+
+class ClientGoneError(MaxfsError, ConnectionError):
+    """The client closed the connection before its request was complete."""
