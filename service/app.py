@@ -14,8 +14,8 @@ upload leaves the store as it was.
 
 from __future__ import annotations
 
-import os
-import tempfile
+import asyncio
+import hashlib
 from collections.abc import Iterator
 from contextlib import asynccontextmanager
 from pathlib import Path as FsPath
@@ -24,21 +24,21 @@ from typing import Annotated, Any, Literal
 import numpy as np
 from fastapi import APIRouter, Depends, FastAPI, Path, Request, Security
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import FileResponse, JSONResponse, Response
+from fastapi.responses import JSONResponse, Response, StreamingResponse
 from pydantic import BaseModel, ConfigDict, Field
-from starlette.background import BackgroundTask
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from service import openapi as api
 from service.dashboard import check_dashboard
 from service.docs import install_docs
-from service.jobs import TEMP_PREFIX, JobManager, npy_bytes
+from service.guards import RequestGuard, check_declared, mask_of, media_type, read_body, stage_body
+from service.jobs import TEMP_PREFIX, JobManager
 from service.models import Health
 from service.page import install_page
-from service.previews import HTTP_PREVIEWS, inputs_of, render
+from service.previews import HTTP_PREVIEWS, inputs_of
 from service.settings import Settings
 from service.statuses import status_of
-from storage.imageio import decode_bytes, encode_png
+from service.streams import npy_pieces, npy_size, preview_png, zip_pieces
 from storage.layout import JobSpec, JobStore
 from storage.params import JobParams
 from storage.records import JobRecord, JobState
@@ -85,6 +85,11 @@ class CreateJob(BaseModel):
     box_factor: float = Field(10.0, description="box on n as a multiple of the brightest value (>= 1)")
     max_nodes: int = Field(200_000, description="exact solver's node budget per pixel (1 to 1e9)")
     milp_time_limit: float = Field(30.0, description="MILP seconds per pixel (0 to 3600)")
+    label: str | None = Field(
+        None,
+        max_length=200,
+        description="your name for the submission; `maxfs submit` finds an unfinished job by it to resume",
+    )
     model: Literal["robust", "paper"] = Field(
         "robust", description="robust (default) or paper (Yu, Seo, Lee 2010 as published); see worker.problem"
     )
@@ -105,6 +110,7 @@ def status_body(
     rec: JobRecord, base: str, uploaded: int | None = None, k: int | None = None
 ) -> dict[str, Any]:
     body = rec.to_json()
+    body.pop("uploaded_images", None)  # the indices; "uploaded" (count) and "missing_images" say it
     frac = rec.tiles_done / rec.tiles_total if rec.tiles_total else 0.0
     remaining = max(rec.pixels_total - rec.pixels_done, 0)
     eta = remaining / rec.pixel_rate if rec.pixel_rate and rec.state.active else None
@@ -131,45 +137,6 @@ def status_body(
         "zip": f"{base}/jobs/{rec.id}/results.zip",
     }
     return body
-
-
-def check_declared(request: Request, limit: int) -> None:
-    """Refuse (413) a body declared larger than ``limit`` before reading any of it."""
-    declared = request.headers.get("content-length")
-    if declared is not None and declared.isdigit() and int(declared) > limit:
-        raise PayloadTooLargeError(
-            f"body of {declared} bytes is larger than the {limit} bytes this upload allows"
-        )
-
-
-async def read_body(request: Request, limit: int) -> bytes:
-    """A small request body, in memory, refusing (413) one larger than ``limit``."""
-    check_declared(request, limit)
-    buf = bytearray()
-    async for chunk in request.stream():
-        buf += chunk
-        if len(buf) > limit:
-            raise PayloadTooLargeError(f"body is larger than the {limit} bytes this upload allows")
-    return bytes(buf)
-
-
-async def stage_body(request: Request, folder: FsPath, name: str, limit: int) -> FsPath:
-    """Stream the body to a staging file in ``folder`` (removed by the caller, or as an
-    orphan on the next start); refuse (413) past ``limit`` bytes."""
-    check_declared(request, limit)
-    fd, tmp = tempfile.mkstemp(prefix=f"{TEMP_PREFIX}{name}-", suffix=".part", dir=folder)
-    path, n = FsPath(tmp), 0
-    try:
-        with os.fdopen(fd, "wb", buffering=0) as f:  # unbuffered: what arrived is on disk
-            async for chunk in request.stream():
-                n += len(chunk)
-                if n > limit:
-                    raise PayloadTooLargeError(f"body is larger than the {limit} bytes this upload allows")
-                f.write(chunk)
-    except BaseException:
-        path.unlink(missing_ok=True)
-        raise
-    return path
 
 
 def raw_bands(path: FsPath, spec: JobSpec, rows: int) -> Iterator[np.ndarray]:
@@ -311,9 +278,13 @@ class JobRoutes:
     def _body(self, request: Request, job_id: str) -> dict[str, Any]:
         rec = self.m.access(job_id, _user(request))
         k = self.m.spec(job_id).k
-        # a started job has every image; only before that is the upload array read (k small files)
-        uploaded = k if rec.started_at is not None else int(self.m.store(job_id).uploaded().sum())
-        return status_body(rec, str(request.base_url).rstrip("/"), uploaded, k)
+        # what was uploaded is in the record (one small file), whatever k is; a started job has all
+        done = set(rec.uploaded_images)
+        uploaded = k if rec.started_at is not None or rec.state.active else len(done)
+        body = status_body(rec, str(request.base_url).rstrip("/"), uploaded, k)
+        if rec.state.accepts_uploads:
+            body["missing_images"] = [i for i in range(k) if i not in done]
+        return body
 
     async def create(self, req: CreateJob, request: Request) -> JSONResponse:
         """Create a job (metadata only); upload images next."""
@@ -329,7 +300,7 @@ class JobRoutes:
         params = JobParams.build(
             eps=req.eps,
             solver=req.solver,
-            tile=spec.resolve_tile(req.tile, self.s.task_memory),
+            tile=self.m.resolve_tile(spec, req.tile, req.solver),
             shadow=req.shadow,
             saturation=req.saturation,
             box_factor=req.box_factor,
@@ -342,7 +313,7 @@ class JobRoutes:
             dequantize=req.dequantize,
             fallback=req.fallback,
         )
-        rec = self.m.create(spec, params, _user(request))
+        rec = self.m.create(spec, params, _user(request), label=req.label)
         body = self._body(request, rec.id)
         return JSONResponse(body, status_code=201, headers={"Location": body["links"]["self"]})
 
@@ -372,49 +343,65 @@ class JobRoutes:
         store = self._before_upload(request, job_id, "images can be uploaded")
         spec = store.spec
         store.check_index(index)
-        raw = request.headers.get("content-type", "application/octet-stream").startswith(
-            "application/octet-stream"
-        )
+        raw = media_type(request, "application/octet-stream") == "application/octet-stream"
         limit = spec.image_nbytes if raw else min(self.s.max_upload_bytes, 2 * spec.image_nbytes + (1 << 20))
         check_declared(request, limit)
-        self.m.check_disk(spec.image_nbytes + limit, f"image {index}")
-        part = await stage_body(request, self.m.job_dir(job_id), f"upload-{index}", limit)
-        try:
-            size = part.stat().st_size
-            if raw:
-                if size != spec.image_nbytes:
-                    raise InvalidInputError(
-                        f"image {index}: got {size} bytes, expected {spec.image_nbytes} "
-                        f"({' x '.join(map(str, spec.image_shape))} {spec.dtype}, little-endian, row-major)"
+        user, s = _user(request), self.s
+        # the staged body (at most its declared length) and the stored image are reserved
+        # before a byte is written
+        declared = request.headers.get("content-length", "")
+        staged = min(limit, int(declared)) if declared.isdigit() else limit
+        with self.m.uploads.take(user.name), self.m.disk.hold(spec.image_nbytes + staged, f"image {index}"):
+            part = await stage_body(
+                request, self.m.job_dir(job_id), f"{TEMP_PREFIX}upload-{index}-", limit, s.upload_idle_timeout
+            )
+            try:
+                size = part.stat().st_size
+                if raw:
+                    if size != spec.image_nbytes:
+                        raise InvalidInputError(
+                            f"image {index}: got {size} bytes, expected {spec.image_nbytes} "
+                            f"({' x '.join(map(str, spec.image_shape))} {spec.dtype}, little-endian, "
+                            "row-major)"
+                        )
+
+                    def write(st: JobStore) -> None:
+                        st.write_bands(index, raw_bands(part, spec, st.band_rows))
+
+                else:  # header checked before any pixel is decoded; decoded in a thread
+                    img = await self.m.decoder.decode_file(
+                        part,
+                        f"image {index}",
+                        max_bytes=2 * spec.image_nbytes + (1 << 20),
+                        shape=spec.image_shape,
+                        dtype=spec.dtype,
                     )
 
-                def write(st: JobStore) -> None:
-                    st.write_bands(index, raw_bands(part, spec, st.band_rows))
+                    def write(st: JobStore) -> None:
+                        st.write_image(index, img)
 
-            else:
-                img = decode_bytes(part.read_bytes(), what=f"image {index}")
-                store.check_image(index, img)
-
-                def write(st: JobStore) -> None:
-                    st.write_image(index, img)
-
-            await self.m.upload_image(job_id, index, write)
-        finally:
-            part.unlink(missing_ok=True)
+                await self.m.upload_image(job_id, index, write)
+            finally:
+                part.unlink(missing_ok=True)
         return self._body(request, job_id)
 
     async def upload_mask(self, job_id: str, request: Request) -> dict[str, Any]:
         """Upload the object mask: PNG (non-zero = object) or raw H*W bytes."""
         spec = self._before_upload(request, job_id, "the mask can be set").spec
-        data = await read_body(request, 2 * spec.height * spec.width + (1 << 20))
-        if request.headers.get("content-type", "").startswith("application/octet-stream"):
-            if len(data) != spec.height * spec.width:
-                raise InvalidInputError(f"mask: got {len(data)} bytes, expected {spec.height * spec.width}")
-            mask = np.frombuffer(data, dtype=np.uint8).reshape(spec.height, spec.width) > 0
-        else:
-            m = decode_bytes(data, what="mask")
-            mask = (m.max(axis=2) if m.ndim == 3 else m) > 0
-        await self.m.upload_mask(job_id, mask)
+        HW = spec.height * spec.width
+        with self.m.uploads.take(_user(request).name), self.m.disk.hold(2 * HW, "the mask"):
+            data = await read_body(request, 2 * HW + (1 << 20), self.s.upload_idle_timeout)
+            if media_type(request) == "application/octet-stream":
+                if len(data) != HW:
+                    raise InvalidInputError(f"mask: got {len(data)} bytes, expected {HW}")
+                mask = np.frombuffer(data, dtype=np.uint8).reshape(spec.height, spec.width) > 0
+            else:  # header checked first (a small file cannot declare a huge mask); decoded in a thread
+                m = await self.m.decoder.decode(
+                    data, "mask", max_bytes=4 * 4 * HW + (1 << 20), hw=(spec.height, spec.width)
+                )
+                mask = mask_of(m)
+            del data
+            await self.m.upload_mask(job_id, mask)
         return self._body(request, job_id)
 
     async def start(self, job_id: str, request: Request) -> dict[str, Any]:
@@ -424,8 +411,13 @@ class JobRoutes:
         body["status_url"] = body["links"]["self"]
         return body
 
-    async def cancel(self, job_id: str, request: Request) -> dict[str, Any]:
-        """Cancel: running tiles finish, nothing else starts; start again to resume."""
+    async def cancel(self, job_id: str, request: Request, purge: bool = False) -> Any:
+        """Cancel: nothing more starts and running tiles stop within seconds; start again to
+        resume. With ``purge=true``: delete a job nothing runs for (created, uploading, done,
+        failed, cancelled) with everything stored for it, which frees its quota slot."""
+        if purge:
+            rec = await self.m.delete(job_id, _user(request))
+            return JSONResponse({"id": rec.id, "state": "deleted", "owner": rec.owner})
         await self.m.cancel(job_id, _user(request))
         return self._body(request, job_id)
 
@@ -453,16 +445,24 @@ class JobRoutes:
         While the job is not done the answer is partial (unfinished tiles hold fill values)
         and says so in the ``X-Maxfs-Partial`` header."""
         store, headers = self._results_of(request, job_id)
-        if name in store.group and store.group[name].nbytes > self.s.max_result_bytes:
+        names = store.output_names()
+        if name not in names:  # before the store is asked: ".", "..", NUL are just unknown names
+            raise NotFoundError(f"no output array {name!r}; available: {', '.join(names)}")
+        arr = store.group[name]
+        if arr.nbytes > self.s.max_result_bytes:
             raise PayloadTooLargeError(
-                f"{name} is {store.group[name].nbytes / 2**20:.0f} MiB, more than one NPY answer may be "
+                f"{name} is {arr.nbytes / 2**20:.0f} MiB, more than one NPY answer may be "
                 f"({self.s.max_result_bytes / 2**20:.0f} MiB); fetch results.zip (`maxfs fetch`) instead"
             )
-        arr = store.read_output(name)
-        return Response(
-            npy_bytes(arr),
+        # streamed from the store in bands (service.streams): a slow reader holds one band
+        return StreamingResponse(
+            npy_pieces(arr),
             media_type="application/octet-stream",
-            headers={"Content-Disposition": f'attachment; filename="{name}.npy"'} | headers,
+            headers={
+                "Content-Disposition": f'attachment; filename="{name}.npy"',
+                "Content-Length": str(npy_size(arr)),
+            }
+            | headers,
         )
 
     async def preview(
@@ -479,21 +479,44 @@ class JobRoutes:
         store, headers = self._results_of(request, job_id)
         if name == "depth" and "depth" not in store.group:
             raise NotFoundError(f"job {job_id} has no depth yet: it is integrated after the job is done")
-        arrays = {n: store.read_output(n) for n in store.output_names() if n in inputs_of(name)}
-        return Response(
-            encode_png(render(name, arrays, store.spec.k)), media_type="image/png", headers=headers
-        )
+        png = await self._preview_png(request, job_id, store, name, inputs_of(name))
+        return Response(png, media_type="image/png", headers=headers)
 
-    async def zip(self, job_id: str, request: Request) -> FileResponse:
-        """The job's whole Zarr group as a zip archive (``X-Maxfs-Partial`` as for results)."""
+    async def _preview_png(
+        self, request: Request, job_id: str, store: JobStore, name: str, inputs: tuple[str, ...]
+    ) -> bytes:
+        """The preview, rendered from outputs read in row bands and decimated to at most
+        ``MAXFS_PREVIEW_MAX_EDGE`` a side (:func:`service.streams.preview_png`), in a thread
+        (as many at once as decodes), and cached in the job folder until the results change."""
+        rec = self.m.access(job_id, _user(request))
+        edge = self.s.preview_max_edge
+        key = f"{rec.state.value}-{rec.tiles_done}-{rec.started_at}-{rec.finished_at}-{edge}"
+        tag = hashlib.sha256(key.encode()).hexdigest()[:16]
+        folder = self.m.job_dir(job_id)
+        cached = folder / f"{TEMP_PREFIX}preview-{name}-{tag}.png"
+        if cached.exists():
+            return cached.read_bytes()
+        async with self.m.decoder.sem:
+            if cached.exists():  # made while this request waited
+                return cached.read_bytes()
+            png = await asyncio.to_thread(preview_png, store, name, inputs, self.s.preview_max_edge)
+            for old in folder.glob(f"{TEMP_PREFIX}preview-{name}-*.png"):
+                old.unlink(missing_ok=True)
+            tmp = folder / f"{TEMP_PREFIX}preview-{name}-{tag}.part"
+            tmp.write_bytes(png)
+            tmp.replace(cached)
+        return png
+
+    async def zip(self, job_id: str, request: Request) -> StreamingResponse:
+        """The job folder as a zip archive (``X-Maxfs-Partial`` as for results)."""
         _, headers = self._results_of(request, job_id)
-        path = self.m.zip_store(job_id)
-        return FileResponse(
-            path,
+        store = self.m.store(job_id)
+        files = await asyncio.to_thread(store.download_files)
+        # made while it is sent (service.streams): no temporary copy on any disk, one piece in memory
+        return StreamingResponse(
+            zip_pieces(files),
             media_type="application/zip",
-            filename=f"{job_id}.zarr.zip",
-            headers=headers,
-            background=BackgroundTask(path.unlink, missing_ok=True),
+            headers={"Content-Disposition": f'attachment; filename="{job_id}.zarr.zip"'} | headers,
         )
 
 
@@ -528,6 +551,8 @@ def create_app(settings: Settings | None = None, manager: JobManager | None = No
     )
     app.state.manager = manager
     app.include_router(JobRoutes(manager, settings, tokens).router)
+    # the token before any body is read; JSON bodies capped (service.guards)
+    app.add_middleware(RequestGuard, settings=settings, tokens=tokens)
     install_docs(app)
     install_page(app)
 

@@ -327,7 +327,14 @@ def cmd_serve(args: argparse.Namespace) -> int:
             f"`maxfs token create NAME --data-dir {settings.data_dir}` (or serve with --no-auth on loopback)",
             file=sys.stderr,
         )
-    uvicorn.run(create_app(settings), host=settings.host, port=settings.port, log_level="info")
+    uvicorn.run(
+        create_app(settings),
+        host=settings.host,
+        port=settings.port,
+        log_level="info",
+        limit_concurrency=settings.max_connections,  # beyond: 503 at once, not a hung accept queue
+        timeout_keep_alive=5,
+    )
     return 0
 
 
@@ -389,6 +396,13 @@ def cmd_fetch(args: argparse.Namespace) -> int:
                     "partial (fetch them with --partial)"
                 )
         print(c.fetch_zarr(args.job_id, Path(args.output), partial=args.partial))
+    return 0
+
+
+def cmd_delete(args: argparse.Namespace) -> int:
+    with _client(args) as c:
+        c.delete(args.job_id)
+    print(f"deleted {args.job_id}", file=sys.stderr)
     return 0
 
 
@@ -487,6 +501,7 @@ def parser() -> argparse.ArgumentParser:
     for name, fn, help_ in (
         ("status", cmd_status, "show a job's state and progress"),
         ("cancel", cmd_cancel, "cancel a job"),
+        ("delete", cmd_delete, "delete a job that is not queued or running, with all its data"),
     ):
         p = sub.add_parser(name, help=help_)
         p.add_argument("job_id")

@@ -28,25 +28,38 @@ from distributed import Client
 from numpy.typing import NDArray
 
 from service.cluster import DaskCluster, start_cluster
+from service.fairness import FairShare
+from service.guards import Decoder, DiskBudget, UploadSlots
+from service.index import JobIndex
 from service.orchestrator import run_job
 from service.settings import Settings
 from storage.layout import JobSpec, JobStore
 from storage.params import JobParams
-from storage.records import RECORD_NAME, JobRecord, JobState, load_record, save_record
+from storage.records import RECORD_NAME, TRANSITIONS, JobRecord, JobState, load_record, save_record
 from storage.tokens import User
 from worker.errors import (
     ConflictError,
-    InsufficientStorageError,
     InvalidInputError,
     NotFoundError,
     PayloadTooLargeError,
     QuotaError,
     StoreError,
 )
+from worker.tiles import WORK_PER_TILE, grid_shape
 
 log = logging.getLogger("maxfs.jobs")
 #: Prefix of every temporary file a process writes in a job folder (removed on start).
 TEMP_PREFIX = ".maxfs-"
+
+
+#: Work of one MILP pixel in units of an exact one, for the bound on hand-set tiles.
+MILP_WORK_COST = 16
+
+
+def owns(user: User, rec: JobRecord) -> bool:
+    """Whether ``rec`` is ``user``'s job: the same name, and the same person (a name revoked
+    and given a new token is someone else; see :mod:`storage.tokens`)."""
+    return rec.owner == user.name and (not rec.owner_uid or not user.uid or rec.owner_uid == user.uid)
 
 
 def _check_id(job_id: str) -> str:
@@ -67,6 +80,15 @@ class JobManager:
         self.runs: dict[str, asyncio.Task] = {}
         self.locks: dict[str, asyncio.Lock] = {}
         self.specs: dict[str, JobSpec] = {}
+        s = settings
+        #: each user's jobs (service.index); every tile's priority (service.fairness)
+        self.index = JobIndex()
+        self.fair = FairShare()
+        fake = s.fault.removeprefix("free-bytes:") if s.fault.startswith("free-bytes:") else None
+        self.disk = DiskBudget(self.root, s.min_free_bytes, None if fake is None else int(fake))
+        self.uploads = UploadSlots(s.max_uploads_per_user)
+        self.decoder = Decoder(s.decode_slots)
+        self.sweeper: asyncio.Task | None = None
 
     # -- life cycle ---------------------------------------------------------------------------
     async def start(self) -> None:
@@ -79,8 +101,11 @@ class JobManager:
                 rec = load_record(job_dir)
             except StoreError:
                 continue
+            self.index.add(rec)
             if rec.state.active:
                 self._launch(rec.id)
+        if self.settings.retention_days > 0:
+            self.sweeper = asyncio.create_task(self._sweep_forever(), name="maxfs-retention")
 
     def clean_orphans(self) -> list[Path]:
         """Remove what a killed process left half-made; return what was removed.
@@ -99,6 +124,10 @@ class JobManager:
                 if p.is_file():
                     p.unlink(missing_ok=True)
                     removed.append(p)
+        # results.zip of older versions went through the system's temp folder
+        for p in Path(tempfile.gettempdir()).glob("maxfs-" + "[0-9a-f]" * 32 + "-*.zip"):
+            p.unlink(missing_ok=True)
+            removed.append(p)
         for p in removed:
             log.warning("removed orphan %s", p)
         return removed
@@ -110,6 +139,9 @@ class JobManager:
         return self.client
 
     async def close(self) -> None:
+        if self.sweeper is not None:
+            self.sweeper.cancel()
+            await asyncio.gather(self.sweeper, return_exceptions=True)
         runs = list(self.runs.values())
         for task in runs:
             task.cancel()
@@ -130,23 +162,53 @@ class JobManager:
     def access(self, job_id: str, user: User) -> JobRecord:
         """The record of a job ``user`` may see; someone else's job is "not found"."""
         rec = self.record(job_id)
-        if rec.owner != user.name and not user.admin:
+        if not (user.admin or owns(user, rec)):
             raise NotFoundError(f"no job {job_id}")
         return rec
 
+    def _record_or_none(self, job_id: str) -> JobRecord | None:
+        try:
+            return self.record(job_id)
+        except (NotFoundError, StoreError):
+            return None
+
     def open_jobs(self, user: User) -> int:
-        return sum(1 for r in self.list(user, everyone=False) if not r.state.final)
+        """The user's unfinished jobs (reads only the records of those that may be)."""
+        return self.index.count_open(user.name, self._record_or_none)
+
+    def resolve_tile(self, spec: JobSpec, tile: int | str, solver: str) -> int:
+        """The tile edge of a new job: "auto", or one given by hand, which must fit the task
+        memory (:meth:`JobSpec.check_tile`) and the work per task that "auto" keeps to:
+        ``tile**2 * k`` at most :data:`worker.tiles.WORK_PER_TILE` (a sixteenth of it for the
+        MILP, about a hundred times slower per pixel), so one task lasts seconds, not hours."""
+        edge = spec.resolve_tile(tile, self.settings.task_memory)
+        if tile != "auto":
+            cost = MILP_WORK_COST if solver == "milp" else 1
+            work = edge * edge * spec.k * cost
+            if work > WORK_PER_TILE:
+                fit = max(int((WORK_PER_TILE / (spec.k * cost)) ** 0.5) // 8 * 8, 8)
+                raise InvalidInputError(
+                    f"tile {edge} means {edge * edge} pixels x {spec.k} images per task"
+                    f"{' with the MILP' if cost > 1 else ''}, more work than one task may have "
+                    f"({WORK_PER_TILE // cost} pixel-images); use tile {fit} or less, or 'auto'"
+                )
+        return edge
+
+    def check_tiles(self, spec: JobSpec, params: JobParams) -> None:
+        """At most ``MAXFS_MAX_TILES`` tiles per job."""
+        ny, nx = grid_shape(spec.height, spec.width, params.tile)
+        most = self.settings.max_tiles
+        if ny * nx > most:
+            need = -(-int((spec.pixels / most) ** 0.5) // 16) * 16
+            raise InvalidInputError(
+                f"tile {params.tile} cuts {spec.height} x {spec.width} into {ny * nx} tiles, more than a job "
+                f"may have ({most}, MAXFS_MAX_TILES); use tile {max(need, 16)} or more"
+            )
 
     def check_disk(self, nbytes: int, what: str) -> None:
-        """Refuse (507) to store ``nbytes`` more if that would eat into the disk reserve."""
-        free = shutil.disk_usage(self.root).free
-        reserve = self.settings.min_free_bytes
-        if free - nbytes < reserve:
-            raise InsufficientStorageError(
-                f"{what} needs up to {nbytes / 2**30:.2f} GiB but the server has "
-                f"{max(free - reserve, 0) / 2**30:.2f} GiB free above its reserve; "
-                "delete old jobs or ask the administrator for space"
-            )
+        """Refuse (507) to store ``nbytes`` more if that, with what uploads in flight have
+        reserved (:class:`service.guards.DiskBudget`), would eat into the disk reserve."""
+        self.disk.check(nbytes, what)
 
     def check_limits(self, spec: JobSpec, user: User) -> None:
         """Per-job and per-user limits, then disk space, before anything is stored."""
@@ -168,18 +230,20 @@ class JobManager:
             )
         self.check_disk(spec.store_nbytes(), f"a job of {spec.k} images of {spec.height} x {spec.width}")
 
-    def create(self, spec: JobSpec, params: JobParams, user: User) -> JobRecord:
+    def create(self, spec: JobSpec, params: JobParams, user: User, label: str | None = None) -> JobRecord:
         spec = spec.validate()
         self.check_limits(spec, user)
+        self.check_tiles(spec, params)
         job_id = uuid.uuid4().hex
         d = self.root / job_id
         try:
             JobStore.create(d, spec, params)
-            rec = JobRecord(id=job_id, owner=user.name)
+            rec = JobRecord(id=job_id, owner=user.name, owner_uid=user.uid, label=label)
             save_record(d, rec)  # last: a folder without a record is an orphan
         except BaseException:
             shutil.rmtree(d, ignore_errors=True)
             raise
+        self.index.add(rec)
         return rec
 
     def record(self, job_id: str) -> JobRecord:
@@ -195,39 +259,43 @@ class JobManager:
         return self.specs[job_id]
 
     def list(self, user: User, everyone: bool = True) -> list[JobRecord]:
-        """Jobs ``user`` may see (an admin sees all when ``everyone``), oldest first."""
+        """Jobs ``user`` may see (an admin sees all when ``everyone``), oldest first; only
+        those records are read (:class:`service.index.JobIndex`)."""
+        ids = self.index.everyone() if user.admin and everyone else self.index.jobs_of(user.name)
         out = []
-        for d in sorted(self.root.iterdir()) if self.root.exists() else []:
-            try:
-                rec = load_record(d)
-            except StoreError:
-                continue
-            if rec.owner == user.name or (user.admin and everyone):
+        for job_id in ids:
+            rec = self._record_or_none(job_id)
+            if rec is not None and ((user.admin and everyone) or owns(user, rec)):
                 out.append(rec)
-        return sorted(out, key=lambda r: r.created_at)
+        return out
 
     async def _write_before_start(
-        self, job_id: str, what: str, write: Callable[[JobStore], None], *, image: bool
+        self, job_id: str, what: str, write: Callable[[JobStore], None], *, image: int | None
     ) -> JobRecord:
-        """Run a store write while the job still takes uploads; an image marks it uploading."""
+        """Run a store write while the job still takes uploads (under the job's lock, so a
+        cancel or start waits for it and sees its result); an image marks it uploading and
+        is recorded in the job record (status reads no store array)."""
+        event = "upload" if image is not None else "mask"
         async with self.lock(job_id):
             rec = self.record(job_id)
-            if not rec.state.accepts_uploads:
+            if rec.state not in TRANSITIONS[event]:
                 raise ConflictError(f"job {job_id} is {rec.state.value}; {what} only before start")
             await asyncio.to_thread(write, self.store(job_id, "r+"))
-            if image:
-                rec.state = JobState.UPLOADING
-                save_record(self.job_dir(job_id), rec)
+            rec = self.record(job_id)  # nothing else changes it meanwhile (the lock); re-read anyway
+            rec.state = rec.state.after(event)
+            if image is not None:
+                rec.uploaded_images = sorted({*rec.uploaded_images, image})
+            save_record(self.job_dir(job_id), rec)
             return rec
 
     async def upload_image(self, job_id: str, index: int, write: Callable[[JobStore], None]) -> JobRecord:
         """Store image ``index`` with ``write(store)`` (e.g. :meth:`JobStore.write_bands`)."""
-        return await self._write_before_start(job_id, "images can be uploaded", write, image=True)
+        return await self._write_before_start(job_id, "images can be uploaded", write, image=index)
 
     async def upload_mask(self, job_id: str, mask: NDArray[np.bool_]) -> JobRecord:
         pause = (lambda: time.sleep(60)) if self.settings.fault == "pause-mask-write" else None
         return await self._write_before_start(
-            job_id, "the mask can be set", lambda store: store.write_mask(mask, pause), image=False
+            job_id, "the mask can be set", lambda store: store.write_mask(mask, pause), image=None
         )
 
     async def start_job(self, job_id: str, user: User) -> JobRecord:
@@ -236,36 +304,45 @@ class JobManager:
             rec = self.access(job_id, user)
             if rec.state.active or job_id in self.runs:
                 raise ConflictError(f"job {job_id} is already {rec.state.value}")
-            if rec.state is JobState.DONE:
-                raise ConflictError(f"job {job_id} is already done")
+            if rec.state not in TRANSITIONS["start"]:
+                raise ConflictError(f"job {job_id} is already {rec.state.value}")
             store = self.store(job_id)
-            missing = np.flatnonzero(~store.uploaded())
-            if missing.size:
-                raise ConflictError(
-                    f"job {job_id} is missing {missing.size} images (first: {int(missing[0])}); "
-                    "upload them first"
-                )
-            if store.mask_state() == "incomplete":
-                raise ConflictError(
-                    f"job {job_id}: the mask upload was cut short (the server stopped while writing it); "
-                    "upload the mask again"
-                )
-            if not store.read_mask().any():
-                raise InvalidInputError(f"job {job_id}: the mask selects no pixel; upload a mask with some")
+
+            def check_inputs() -> None:  # reads the store (the whole mask): in a thread
+                missing = np.flatnonzero(~store.uploaded())
+                if missing.size:
+                    raise ConflictError(
+                        f"job {job_id} is missing {missing.size} images (first: {int(missing[0])}); "
+                        "upload them first"
+                    )
+                if store.mask_state() == "incomplete":
+                    raise ConflictError(
+                        f"job {job_id}: the mask upload was cut short (the server stopped while writing "
+                        "it); upload the mask again"
+                    )
+                if not store.read_mask().any():
+                    raise InvalidInputError(
+                        f"job {job_id}: the mask selects no pixel; upload a mask with some"
+                    )
+
+            await asyncio.to_thread(check_inputs)
             if rec.state.final and self.open_jobs(User(rec.owner)) >= self.settings.max_open_jobs:
                 raise QuotaError(
                     f"user {rec.owner!r} already has {self.settings.max_open_jobs} unfinished jobs; "
                     "wait for one to finish before resuming this one"
                 )
             await self.ensure_client()
-            rec.state = JobState.QUEUED
+            rec.state = rec.state.after("start")
             rec.error = None
+            rec.uploaded_images = []  # every image is there now; status says k
             save_record(self.job_dir(job_id), rec)
+            self.index.reopen(rec)
             self._launch(job_id)
             return rec
 
     def _launch(self, job_id: str) -> None:
         assert self.client is not None, "JobManager.start() was not awaited"
+        owner = self.index.owner.get(job_id, ("", ""))[0]
 
         async def go() -> None:
             try:
@@ -274,6 +351,9 @@ class JobManager:
                     self.job_dir(job_id),
                     progress_interval=self.settings.progress_interval,
                     retries=self.settings.tile_retries,
+                    fair=self.fair,
+                    user=owner,
+                    tile_time_limit=self.settings.tile_time_limit or None,
                 )
             except asyncio.CancelledError:
                 raise
@@ -283,9 +363,13 @@ class JobManager:
             finally:
                 self.runs.pop(job_id, None)
 
-        self.runs[job_id] = asyncio.create_task(go(), name=f"maxfs-job-{job_id}")
+        task = asyncio.create_task(go(), name=f"maxfs-job-{job_id}")
+        self.runs[job_id] = task
+        # a task cancelled before it ever ran skips go()'s finally: forget it here too, or every
+        # later start would find it and answer 409
+        task.add_done_callback(lambda t: self.runs.pop(job_id, None) if self.runs.get(job_id) is t else None)
 
-    def _fail(self, job_id: str, reason: str) -> None:
+    def _fail(self, job_id: str, reason: str) -> None:  # the run task's last word: no lock needed
         try:
             rec = self.record(job_id)
             if rec.state.active:
@@ -295,20 +379,85 @@ class JobManager:
             log.exception("cannot record the failure of job %s", job_id)
 
     async def cancel(self, job_id: str, user: User) -> JobRecord:
-        """Cancel a job: running tiles finish their tile, nothing else starts."""
-        rec = self.access(job_id, user)
-        if rec.state.final:
-            raise ConflictError(f"job {job_id} is already {rec.state.value}")
-        self.store(job_id, "r+").request_cancel()
-        task = self.runs.get(job_id)
-        if task is not None:
-            task.cancel()
-            await asyncio.gather(task, return_exceptions=True)
-        rec = self.record(job_id)
-        if rec.state is not JobState.CANCELLED:  # never started (created/uploading)
-            rec.state = JobState.CANCELLED
-            save_record(self.job_dir(job_id), rec)
+        """Cancel a job: nothing more starts, and running tiles stop at their next cancel
+        point (within about a second: :mod:`worker.cancel`), writing nothing.
+
+        Under the job's lock: an upload in progress finishes first (and the job then takes
+        no more), a start waits and then finds the job cancelled (and may resume it)."""
+        async with self.lock(job_id):
+            rec = self.access(job_id, user)
+            if rec.state not in TRANSITIONS["cancel"]:
+                raise ConflictError(f"job {job_id} is already {rec.state.value}")
+            self.store(job_id, "r+").request_cancel()
+            task = self.runs.get(job_id)
+            if task is not None:
+                task.cancel()
+                await asyncio.gather(task, return_exceptions=True)
+                self.runs.pop(job_id, None)
+            rec = self.record(job_id)
+            if rec.state in TRANSITIONS["cancel"]:  # never started, or the run did not record it
+                rec.state, rec.finished_at = rec.state.after("cancel"), time.time()
+                save_record(self.job_dir(job_id), rec)
+            elif rec.state is not JobState.CANCELLED:  # it finished (or failed) just before
+                raise ConflictError(f"job {job_id} is already {rec.state.value}")
+            return rec
+
+    async def delete(self, job_id: str, user: User) -> JobRecord:
+        """Delete a job nothing runs for (created, uploading, done, failed, cancelled): its
+        folder goes, its quota slot is free. A queued or running job must be cancelled first."""
+        async with self.lock(job_id):
+            rec = self.access(job_id, user)
+            if rec.state not in TRANSITIONS["delete"] or job_id in self.runs:
+                raise ConflictError(
+                    f"job {job_id} is {rec.state.value}; cancel it first (DELETE without purge), "
+                    "then delete it"
+                )
+            trash = self._unlink_job(job_id)
+        await asyncio.to_thread(shutil.rmtree, trash, True)
+        self.locks.pop(job_id, None)
         return rec
+
+    def _unlink_job(self, job_id: str) -> Path:
+        """Take a job out of the index and its folder out of ``jobs/`` (renamed, to be removed)."""
+        trash = self.root / f"{TEMP_PREFIX}deleting-{job_id}"
+        self.job_dir(job_id).rename(trash)  # tile tasks still finishing see their folder gone
+        self.index.remove(job_id)
+        self.specs.pop(job_id, None)
+        return trash
+
+    async def sweep(self, now: float | None = None) -> list[str]:
+        """Delete jobs past the retention period (``MAXFS_RETENTION_DAYS``): finished ones
+        after their end, created or uploading ones after their last change."""
+        days = self.settings.retention_days
+        if days <= 0:
+            return []
+        cutoff = (now or time.time()) - days * 86400
+        gone = []
+        for job_id in self.index.everyone():
+            rec = self._record_or_none(job_id)
+            if rec is None or rec.state.active or job_id in self.runs:
+                continue
+            when = rec.finished_at if rec.state.final and rec.finished_at else rec.updated_at
+            if when >= cutoff:
+                continue
+            async with self.lock(job_id):
+                if job_id in self.runs or self._record_or_none(job_id) != rec:
+                    continue  # changed meanwhile
+                trash = self._unlink_job(job_id)
+            await asyncio.to_thread(shutil.rmtree, trash, True)
+            self.locks.pop(job_id, None)
+            log.info("deleted job %s of %s: past the retention period (%g days)", job_id, rec.owner, days)
+            gone.append(job_id)
+        return gone
+
+    async def _sweep_forever(self) -> None:
+        period = min(3600.0, max(self.settings.retention_days * 86400 / 4, 0.5))
+        while True:
+            try:
+                await self.sweep()
+            except Exception:
+                log.exception("retention sweep failed; trying again later")
+            await asyncio.sleep(period)
 
     def zip_store(self, job_id: str) -> Path:
         """The job's whole Zarr group (plus record) as a zip file in a temp location."""

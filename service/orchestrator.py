@@ -18,6 +18,8 @@ from pathlib import Path
 from distributed import Client, as_completed
 
 from service.cluster import check_store_visible
+from service.fairness import BATCH as FAIR_BATCH
+from service.fairness import FairShare
 from storage.layout import JobStore
 from storage.params import JobParams
 from storage.records import JobRecord, JobState, load_record, save_record
@@ -27,6 +29,8 @@ from worker.problem import check_options
 from worker.task import TileOutcome, estimate_store_eps, run_tile, warm_up
 
 ProgressFn = Callable[[JobRecord], None]
+#: Futures of a job waited on at once (all are submitted; see run_job).
+WAIT_WINDOW = 128
 
 
 async def warm_workers(client: Client) -> None:
@@ -75,6 +79,9 @@ async def run_job(
     on_progress: ProgressFn | None = None,
     progress_interval: float = 1.0,
     retries: int = 2,
+    fair: FairShare | None = None,
+    user: str = "",
+    tile_time_limit: float | None = None,
 ) -> JobRecord:
     """Run (or resume) every unfinished tile of a job; return its final record.
 
@@ -96,6 +103,7 @@ async def run_job(
     rec.state, rec.error, rec.finished_at = JobState.QUEUED, None, None
     save()
     futures: dict[str, object] = {}
+    held = 0  # ranks of this job's tiles in its user's backlog (service.fairness), not yet released
     try:
         # a worker must see this very store (a shared filesystem) before any task reads it
         await check_store_visible(client, job_dir, rec.id)
@@ -105,23 +113,48 @@ async def run_job(
             eps = await client.submit(estimate_store_eps, str(job_dir), key=key, pure=False, retries=retries)
             params = resolve_eps(store, eps)
         rec.eps = params.eps
-        tiles = store.tiles()
-        done = store.done_grid().ravel()
-        count_finished(rec, store)
+        # many small reads (one per tile): in a thread, so the server keeps answering meanwhile
+        done = (await asyncio.to_thread(store.done_grid)).ravel()
+        await asyncio.to_thread(count_finished, rec, store)
         rec.state, rec.started_at, rec.pixel_rate = JobState.RUNNING, time.time(), None
         save()
         digest, nonce = params.digest(), uuid.uuid4().hex[:8]
         index_of: dict[str, int] = {}
-        for t in tiles:
-            if not done[t.index]:
-                key = f"maxfs-tile-{rec.id}-{t.index}-{nonce}"
-                futures[key] = client.submit(
-                    run_tile, str(job_dir), t.index, digest, key=key, pure=False, retries=retries
-                )
-                index_of[key] = t.index
+        todo = [int(i) for i in (~done).nonzero()[0]]
+        # in batches (one message each), yielding to the event loop between them; each batch's
+        # priority is minus its rank in the user's backlog, so users share the workers
+        for b in range(0, len(todo), FAIR_BATCH):
+            batch = todo[b : b + FAIR_BATCH]
+            keys = [f"maxfs-tile-{rec.id}-{i}-{nonce}" for i in batch]
+            rank = fair.take(user, len(batch)) if fair is not None else 0
+            held += len(batch)
+            n = len(batch)
+            futs = client.map(
+                run_tile,
+                [str(job_dir)] * n,
+                batch,
+                [digest] * n,
+                [tile_time_limit] * n,
+                key=keys,
+                pure=False,
+                retries=retries,
+                priority=-rank,
+            )
+            for key, fut, i in zip(keys, futs, batch, strict=True):
+                futures[key] = fut
+                index_of[key] = i
+            await asyncio.sleep(0)
         counter, last = RunCounter(rec), 0.0
         cancelled = False
-        async for fut in as_completed(list(futures.values())):
+        # wait on a window of futures at a time (in submission order, topped up as they finish):
+        # as_completed on thousands at once runs thousands of callbacks in one loop turn
+        queue = list(futures.values())
+        window = as_completed(queue[:WAIT_WINDOW])
+        nxt = WAIT_WINDOW
+        async for fut in window:
+            if nxt < len(queue):
+                window.add(queue[nxt])
+                nxt += 1
             futures.pop(fut.key, None)
             try:
                 out: TileOutcome = await fut
@@ -136,6 +169,15 @@ async def run_job(
                 ) from e
             finally:
                 fut.release()
+                if fair is not None and held:
+                    fair.release(user)
+                    held -= 1
+            if out.status == "overtime":
+                raise RuntimeError(
+                    f"tile {out.index} was stopped after {tile_time_limit:g} s (MAXFS_TILE_TIME_LIMIT); "
+                    "finished tiles are kept: use a smaller tile, or lower max_nodes or "
+                    "milp_time_limit, then start the job again"
+                )
             if out.status == "cancelled":
                 cancelled = True
                 continue
@@ -147,11 +189,11 @@ async def run_job(
                 last = now
         if cancelled or store.cancel_requested:
             raise JobCancelledError("cancelled by request")
-        if not store.done_grid().all():
+        if not (await asyncio.to_thread(store.done_grid)).all():
             raise RuntimeError(
                 "some tiles finished without their done marker; start the job again to finish it"
             )
-        count_finished(rec, store)
+        await asyncio.to_thread(count_finished, rec, store)
         rec.state, rec.finished_at = JobState.DONE, time.time()
         save()
         return rec
@@ -171,6 +213,9 @@ async def run_job(
         rec.state, rec.error, rec.finished_at = JobState.FAILED, str(e), time.time()
         save()
         return rec
+    finally:
+        if fair is not None and held:
+            fair.release(user, held)
 
 
 async def _drop(client: Client, futures: dict) -> None:

@@ -87,6 +87,27 @@ class Settings(BaseSettings):
     progress_interval: float = 1.0
     #: Retries of a failed tile task before the job fails.
     tile_retries: int = 2
+    #: Seconds one tile task may compute before it is stopped and its job fails, naming the
+    #: tile (0 = no limit): no tile holds a worker for hours.
+    tile_time_limit: float = 900.0
+    #: Most tiles per job: each tile is a task (about 1 ms of scheduler time) and a chunk file
+    #: in every per-tile array, so a job of tiny tiles is slow everywhere; "auto" stays far below.
+    max_tiles: int = 4096
+    #: Largest JSON body (``POST /jobs``): lights for ``max_k`` images need far less.
+    max_json_bytes: int = 4 << 20
+    #: Seconds an upload may send nothing before it is dropped (408).
+    upload_idle_timeout: float = 60.0
+    #: Uploads (image or mask bodies) one user may have in flight at once (429 beyond).
+    max_uploads_per_user: int = 8
+    #: Encoded images (PNG/TIFF) decoded at once, in threads, each bounded by its job's image size.
+    decode_slots: int = 2
+    #: Open connections ``maxfs serve`` accepts at once; beyond that new ones get 503.
+    max_connections: int = 1024
+    #: Longest side of a PNG preview; larger results are shown decimated.
+    preview_max_edge: int = 1024
+    #: Days a finished job (done, failed, cancelled), or one left created/uploading, is kept
+    #: after its last change; then it is deleted. 0 = keep every job until deleted by hand.
+    retention_days: float = 0.0
     #: Server URL and API token used by ``maxfs submit/status/fetch/cancel``.
     server: str = "http://127.0.0.1:8000"
     token: str = ""
