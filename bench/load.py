@@ -1,23 +1,34 @@
-"""Load on a shared server: several users submit jobs at once while others poll status.
+"""Load on a shared server: several users submit jobs at once while others poll status,
+and (``--hostile``) a careless or hostile user attacks the server meanwhile.
 
 Each user (one thread) creates its jobs, uploads every image, starts them, and
 waits; a poller thread per user reads the status of that user's jobs in a loop
 and records each request's latency. At the end every user tries to read, fetch
 and cancel every other user's jobs (all must answer 404) and lists its own jobs.
 
-    python -m bench.load [--users 3] [--jobs 3] [--k 12] [--size 64] [--workers 2]
+With ``--hostile``, threads send what issue #10 catalogued, in a loop, for as long
+as the users work: 56 MB JSON bodies without a token, PNG decompression bombs, stalled
+uploads (left to time out), a job of tiny tiles, start/cancel storms on one job, and
+slow readers of a large result. Their answers are counted by status code.
 
-prints one table row: jobs finished, status requests, p50/p95/max status
-latency, and cross-user denials. ``tests/test_load.py`` runs the same scenario
-small and checks its outcome (never its timings).
+    python -m bench.load [--users 3] [--jobs 3] [--k 12] [--size 64] [--workers 2] [--hostile]
+
+prints a table row: jobs finished, status requests, p50/p95/max status latency, the
+server's peak memory (VmHWM, and its growth during the run), hostile requests by
+answer, and cross-user denials. ``tests/test_load.py`` runs the same scenario small
+and checks its outcome (never its timings).
 """
 
 from __future__ import annotations
 
 import argparse
+import socket
+import struct
 import tempfile
 import threading
 import time
+import zlib
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -39,9 +50,102 @@ class LoadResult:
     leaked: list[str] = field(default_factory=list)  # cross-user requests that were not
     listed_ok: bool = True  # every user's list held exactly its own jobs
     wall: float = 0.0
+    hostile: Counter = field(default_factory=Counter)  # "what: status" -> count
 
     def percentile(self, q: float) -> float:
         return float(np.percentile(self.latencies, q)) if self.latencies else float("nan")
+
+
+def png_bomb(w: int, h: int) -> bytes:
+    """A valid grey PNG of w x h zeros in about w * h / 1000 bytes (deflate blocks repeated)."""
+
+    def chunk(tag: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + tag + data + struct.pack(">I", zlib.crc32(tag + data))
+
+    rows = 100
+    block = b"\x00" * ((w + 1) * rows)
+    z = zlib.compressobj(9, zlib.DEFLATED, -15)
+    piece = z.compress(block) + z.flush(zlib.Z_FULL_FLUSH)
+    adler = 1
+    for _ in range(h // rows):
+        adler = zlib.adler32(block, adler)
+    stream = b"\x78\xda" + piece * (h // rows) + zlib.compressobj(9, zlib.DEFLATED, -15).flush()
+    stream += struct.pack(">I", adler)
+    ihdr = struct.pack(">IIBBBBB", w, h // rows * rows, 8, 0, 0, 0, 0)
+    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", stream) + chunk(b"IEND", b"")
+
+
+def _raw(url: str, head: str, body: bytes, timeout: float = 120) -> socket.socket:
+    host, port = url.removeprefix("http://").split(":")
+    s = socket.create_connection((host, int(port)), timeout=timeout)
+    try:
+        s.sendall(head.encode() + b"\r\n" + body)
+    except OSError:  # the server answered (and closed) before the body was sent: read its answer
+        pass
+    return s
+
+
+def _status_of(s: socket.socket) -> int:
+    try:
+        line = s.recv(64).split(b"\r\n", 1)[0]
+        return int(line.split()[1]) if line else 0
+    except (OSError, IndexError, ValueError):
+        return 0
+    finally:
+        s.close()
+
+
+def hostile_user(url: str, token: str, res: LoadResult, lock: threading.Lock, stop: threading.Event) -> None:
+    """Issue #10's hostile and careless requests, in a loop until ``stop``."""
+    auth = {"Authorization": f"Bearer {token}"}
+    bomb = png_bomb(30000, 30000)
+    lights = synthetic.lights_uniform(6).tolist()
+
+    def count(what: str, code: int) -> None:
+        with lock:
+            res.hostile[f"{what}: {code}"] += 1
+
+    with httpx.Client(base_url=url, headers=auth, timeout=120) as h:
+        job = h.post("/jobs", json={"k": 6, "height": 64, "width": 64, "lights": lights, "eps": 2.0}).json()[
+            "id"
+        ]
+        storm = h.post("/jobs", json={"k": 6, "height": 64, "width": 64, "lights": lights, "eps": 2.0}).json()
+        img = synthetic.sphere(6, 64).images.astype(np.uint8)
+        for i in range(6):
+            h.put(f"/jobs/{storm['id']}/images/{i}", content=img[i].tobytes())
+        while not stop.is_set():
+            # 56 MB of JSON without a token (4 MB of it sent before the answer)
+            s = _raw(
+                url,
+                f"POST /jobs HTTP/1.1\r\nHost: x\r\nContent-Length: {56 << 20}\r\n",
+                b"[" + b"0," * (2 << 20),
+            )
+            count("56 MB JSON, no token", _status_of(s))
+            r = h.put(f"/jobs/{job}/images/0", content=bomb, headers={"Content-Type": "image/png"})
+            count("PNG bomb 30000^2", r.status_code)
+            r = h.put(f"/jobs/{job}/mask", content=bomb, headers={"Content-Type": "image/png"})
+            count("mask PNG bomb", r.status_code)
+            stalled = [
+                _raw(
+                    url,
+                    f"PUT /jobs/{job}/images/{i} HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer {token}\r\n"
+                    f"Content-Type: application/octet-stream\r\nContent-Length: 4096\r\n",
+                    b"\x00" * 100,
+                )
+                for i in range(1, 3)
+            ]
+            r = h.post("/jobs", json={"k": 6, "height": 4096, "width": 4096, "lights": lights, "tile": 8})
+            count("65,536 tiny tiles", r.status_code)
+            for _ in range(3):
+                count("start", h.post(f"/jobs/{storm['id']}/start").status_code)
+                count("cancel", h.delete(f"/jobs/{storm['id']}").status_code)
+            for name in ("..", ".", "%00"):
+                count("result name " + name, h.get(f"/jobs/{storm['id']}/results/{name}.npy").status_code)
+            for s in stalled:
+                count("stalled upload", _status_of(s))
+        for jid in (job, storm["id"]):
+            h.delete(f"/jobs/{jid}")
+            h.delete(f"/jobs/{jid}", params={"purge": "true"})
 
 
 def run_load(
@@ -51,8 +155,10 @@ def run_load(
     k: int = 12,
     size: int = 64,
     timeout: float = 600,
+    hostile_token: str | None = None,
 ) -> LoadResult:
-    """Run the scenario against a server at ``url`` with one token per user."""
+    """Run the scenario against a server at ``url`` with one token per user (and, with
+    ``hostile_token``, a hostile user besides them)."""
     res = LoadResult()
     lock = threading.Lock()
     scene = synthetic.bump_scene(k, size, seed=1)
@@ -98,13 +204,21 @@ def run_load(
     t0 = time.perf_counter()
     submitters = [threading.Thread(target=submit, args=(u,)) for u in tokens]
     pollers = [threading.Thread(target=poll, args=(u,), daemon=True) for u in tokens]
+    if hostile_token:
+        hstop = threading.Event()
+        attacker = threading.Thread(
+            target=hostile_user, args=(url, hostile_token, res, lock, hstop), daemon=True
+        )
+        pollers.append(attacker)
     for t in submitters + pollers:
         t.start()
     for t in submitters:
         t.join()
     stop.set()
+    if hostile_token:
+        hstop.set()
     for t in pollers:
-        t.join(timeout=30)
+        t.join(timeout=60)
     res.wall = time.perf_counter() - t0
     if errors:
         raise errors[0]
@@ -137,30 +251,48 @@ def main() -> None:
     ap.add_argument("--k", type=int, default=12)
     ap.add_argument("--size", type=int, default=64)
     ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--hostile", action="store_true", help="a hostile user attacks the server meanwhile")
     args = ap.parse_args()
 
     from tests.procs import Server
 
     with tempfile.TemporaryDirectory(prefix="maxfs-load-") as tmp:
-        server = Server(Path(tmp) / "data", "", Path(tmp), workers=args.workers, auth=True)
+        env = {"MAXFS_UPLOAD_IDLE_TIMEOUT": "5", "MAXFS_MIN_FREE_BYTES": "0"}
+        server = Server(Path(tmp) / "data", "", Path(tmp), workers=args.workers, auth=True, env=env)
         try:
             tokens = {f"user{i}": server.token(f"user{i}") for i in range(args.users)}
-            r = run_load(server.url, tokens, args.jobs, args.k, args.size)
+            bad = server.token("mallory") if args.hostile else None
+            base_kb = _kb(server.proc.pid, "VmRSS")
+            r = run_load(server.url, tokens, args.jobs, args.k, args.size, hostile_token=bad)
+            peak_kb = _kb(server.proc.pid, "VmHWM")
         finally:
             server.kill()
     done = sum(s == "done" for s in r.states.values())
     print(
-        "| users | jobs | k | size | wall s | jobs done | status requests | p50 ms | p95 ms | max ms "
-        "| cross-user 404 | leaks |"
+        "| users | hostile | jobs | k | size | wall s | jobs done | status requests | p50 ms | p95 ms "
+        "| max ms | server peak MB (growth) | cross-user 404 | leaks |"
     )
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     print(
-        f"| {args.users} | {len(r.states)} | {args.k} | {args.size} | {r.wall:.1f} | {done} "
-        f"| {len(r.latencies)} "
+        f"| {args.users} | {'yes' if args.hostile else 'no'} | {len(r.states)} | {args.k} | {args.size} "
+        f"| {r.wall:.1f} | {done} | {len(r.latencies)} "
         f"| {r.percentile(50) * 1e3:.1f} | {r.percentile(95) * 1e3:.1f} | {max(r.latencies) * 1e3:.1f} "
-        f"| {r.denied} | {len(r.leaked)} |"
+        f"| {peak_kb / 1024:.0f} (+{(peak_kb - base_kb) / 1024:.0f}) | {r.denied} | {len(r.leaked)} |"
     )
+    if r.hostile:
+        print()
+        print("| hostile request: answer | count |")
+        print("|---|---|")
+        for what, n in sorted(r.hostile.items()):
+            print(f"| {what} | {n} |")
     assert all(s in FINAL_STATES for s in r.states.values())
+
+
+def _kb(pid: int, key: str) -> int:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith(key + ":"):
+            return int(line.split()[1])
+    return 0
 
 
 if __name__ == "__main__":
