@@ -507,11 +507,12 @@ class JobRoutes:
             tmp.replace(cached)
         return png
 
-    async def zip(self, job_id: str, request: Request) -> StreamingResponse:
-        """The job folder as a zip archive (``X-Maxfs-Partial`` as for results)."""
+    async def zip(self, job_id: str, request: Request, inputs: bool = False) -> StreamingResponse:
+        """The job folder as a zip archive: ``results.zarr`` without the input stack (with it when
+        ``inputs=true``), previews and record (``X-Maxfs-Partial`` as for results)."""
         _, headers = self._results_of(request, job_id)
         store = self.m.store(job_id)
-        files = await asyncio.to_thread(store.download_files)
+        files = await asyncio.to_thread(store.download_files, inputs)
         # made while it is sent (service.streams): no temporary copy on any disk, one piece in memory
         return StreamingResponse(
             zip_pieces(files),

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
 from typing import Any
@@ -73,7 +74,6 @@ def _response(value: str) -> float | str:
         return float(value)
     except ValueError:
         raise argparse.ArgumentTypeError(f"response must be a number or 'auto', got {value!r}") from None
-
 
 
 def _tile(value: str) -> int | str:
@@ -275,7 +275,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     )
     store, rec = run_folder(
         load_folder(folder),
-        out / "result.zarr",
+        out / "result",
         JobParams.build(eps=1.0, tile=args.tile),
         workers=args.workers or Settings().workers,
         on_note=lambda note: print(note, file=sys.stderr),
@@ -395,7 +395,7 @@ def cmd_fetch(args: argparse.Namespace) -> int:
                     f"job {args.job_id} ended {st['state']}: {st.get('error') or ''}; its results are "
                     "partial (fetch them with --partial)"
                 )
-        print(c.fetch_zarr(args.job_id, Path(args.output), partial=args.partial))
+        print(c.fetch_zarr(args.job_id, Path(args.output), partial=args.partial, inputs=args.inputs))
     return 0
 
 
@@ -521,6 +521,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("job_id")
     p.add_argument("-o", "--output", required=True)
     p.add_argument("--wait", action="store_true", help="wait until the job has finished, then fetch")
+    p.add_argument("--inputs", action="store_true", help="also download the input image stack")
     p.add_argument(
         "--partial", action="store_true", help="fetch a job that is not done (unfinished tiles hold fills)"
     )
@@ -537,8 +538,11 @@ def main(argv: list[str] | None = None) -> int:
         print(f"maxfs: error: {e}", file=sys.stderr)
         return EXIT_USAGE
     except KeyboardInterrupt:
-        print("\nmaxfs: interrupted; run the same command again to resume", file=sys.stderr)
-        return 130
+        print("\nmaxfs: interrupted; run the same command again to resume", file=sys.stderr, flush=True)
+        # tiles still running in threads or worker processes would hold the exit (and print
+        # tracebacks); their work is not lost: a tile counts only once its done marker is written
+        sys.stdout.flush()
+        os._exit(130)
     except httpx.HTTPError as e:
         print(f"maxfs: error: cannot talk to the server ({e}); is `maxfs serve` running?", file=sys.stderr)
         return EXIT_USAGE

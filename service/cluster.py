@@ -49,29 +49,15 @@ from distributed import Client
 from distributed.diagnostics.plugin import WorkerPlugin
 from distributed.security import Security
 
-from service.settings import Settings
+from service.settings import Settings, cluster_kind
 from worker.errors import ConflictError, InvalidInputError, StoreError
 
 log = logging.getLogger("maxfs.cluster")
 
-KINDS = ("local", "slurm", "address")
 #: SLURM job name of every worker job (what ``squeue``/``sacct`` show).
 SLURM_JOB_NAME = "maxfs-worker"
 #: Prefix of probe files (the job manager's temp-file prefix: removed on restart, never zipped).
 PROBE_PREFIX = ".maxfs-probe-"
-
-
-def cluster_kind(settings: Settings) -> str:
-    """The kind of cluster ``settings`` ask for: ``MAXFS_CLUSTER``, or from ``MAXFS_SCHEDULER``."""
-    kind = (settings.cluster or ("address" if settings.scheduler else "local")).strip().lower()
-    if kind not in KINDS:
-        raise InvalidInputError(f"unknown cluster {settings.cluster!r}: use one of {', '.join(KINDS)}")
-    if kind == "address" and not settings.scheduler:
-        raise InvalidInputError(
-            "cluster 'address' needs the scheduler's address: set MAXFS_SCHEDULER (or --scheduler) "
-            "to e.g. tls://10.0.0.5:8786"
-        )
-    return kind
 
 
 class _WorkerSetup(WorkerPlugin):

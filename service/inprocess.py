@@ -19,7 +19,7 @@ from pathlib import Path
 
 from numpy.typing import NDArray
 
-from service.orchestrator import ProgressFn, RunCounter, count_finished, resolve_eps
+from service.progress import ProgressFn, RunCounter, count_finished, resolve_eps
 from storage.layout import JobStore
 from storage.records import JobRecord, JobState, load_record, save_record
 from worker.task import TileOutcome, compute_tile, estimate_eps_of

@@ -19,7 +19,6 @@ import shutil
 import tempfile
 import time
 import uuid
-import zipfile
 from collections.abc import Callable
 from pathlib import Path
 
@@ -31,6 +30,7 @@ from service.cluster import DaskCluster, start_cluster
 from service.fairness import FairShare
 from service.guards import Decoder, DiskBudget, UploadSlots
 from service.index import JobIndex
+from service.local import finish
 from service.orchestrator import run_job
 from service.settings import Settings
 from storage.layout import JobSpec, JobStore
@@ -334,7 +334,6 @@ class JobManager:
             await self.ensure_client()
             rec.state = rec.state.after("start")
             rec.error = None
-            rec.uploaded_images = []  # every image is there now; status says k
             save_record(self.job_dir(job_id), rec)
             self.index.reopen(rec)
             self._launch(job_id)
@@ -354,6 +353,7 @@ class JobManager:
                     fair=self.fair,
                     user=owner,
                     tile_time_limit=self.settings.tile_time_limit or None,
+                    finish=finish,  # previews and depth, as `maxfs run` makes them
                 )
             except asyncio.CancelledError:
                 raise
@@ -458,17 +458,6 @@ class JobManager:
             except Exception:
                 log.exception("retention sweep failed; trying again later")
             await asyncio.sleep(period)
-
-    def zip_store(self, job_id: str) -> Path:
-        """The job's whole Zarr group (plus record) as a zip file in a temp location."""
-        d = self.job_dir(job_id)
-        fd, tmp = tempfile.mkstemp(suffix=".zip", prefix=f"maxfs-{job_id}-")
-        with open(fd, "wb") as fh, zipfile.ZipFile(fh, "w", zipfile.ZIP_STORED) as zf:
-            for p in sorted(d.rglob("*")):
-                if p.is_file() and not p.name.startswith(TEMP_PREFIX):
-                    zf.write(p, p.relative_to(d).as_posix())
-        return Path(tmp)
-
 
 def npy_bytes(arr: NDArray) -> bytes:
     buf = io.BytesIO()

@@ -17,11 +17,10 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from service.cluster import cluster_kind, open_cluster
 from service.inprocess import run_in_process
-from service.orchestrator import ProgressFn, run_job
 from service.previews import PREVIEW_INPUTS, PREVIEWS, render
-from service.settings import Settings
+from service.progress import ProgressFn
+from service.settings import Settings, cluster_kind
 from service.timings import Timings
 from storage.datasets import Dataset
 from storage.imageio import encode_png
@@ -134,6 +133,9 @@ def cluster_settings(scheduler: str = "", workers: int = 2, cluster: str = "") -
 
 
 async def _run(out: Path, settings: Settings, on_progress: ProgressFn | None) -> JobRecord:
+    from service.cluster import open_cluster  # imports distributed: only for cluster runs
+    from service.orchestrator import run_job
+
     # SLURM worker jobs write their logs beside the results (a shared filesystem either way)
     out = out.absolute()  # workers elsewhere have other working folders
     async with open_cluster(settings, log_dir=out / "slurm-logs") as dc:

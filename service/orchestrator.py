@@ -10,6 +10,7 @@ All state lives in the job store and record: restart the process and call
 from __future__ import annotations
 
 import asyncio
+import logging
 import time
 import uuid
 from collections.abc import Callable
@@ -20,15 +21,13 @@ from distributed import Client, as_completed
 from service.cluster import check_store_visible
 from service.fairness import BATCH as FAIR_BATCH
 from service.fairness import FairShare
+from service.progress import ProgressFn, RunCounter, count_finished, resolve_eps
 from storage.layout import JobStore
-from storage.params import JobParams
 from storage.records import JobRecord, JobState, load_record, save_record
 from worker.errors import JobCancelledError
-from worker.noise import Estimate
-from worker.problem import check_options
 from worker.task import TileOutcome, estimate_store_eps, run_tile, warm_up
 
-ProgressFn = Callable[[JobRecord], None]
+log = logging.getLogger("maxfs.orchestrator")
 #: Futures of a job waited on at once (all are submitted; see run_job).
 WAIT_WINDOW = 128
 
@@ -36,40 +35,6 @@ WAIT_WINDOW = 128
 async def warm_workers(client: Client) -> None:
     """Load the solver kernels on every current worker (see :func:`worker.task.warm_up`)."""
     await client.run(warm_up)
-
-
-class RunCounter:
-    """Adds finished tiles to a record and keeps the pixel rate of this run."""
-
-    def __init__(self, rec: JobRecord) -> None:
-        self.rec, self.t0, self.pixels = rec, time.monotonic(), 0
-
-    def add(self, out: TileOutcome) -> None:
-        rec = self.rec
-        rec.tiles_done += 1
-        rec.pixels_done += out.active
-        rec.solved_pixels += out.solved
-        rec.certified_pixels += out.certified
-        self.pixels += out.active
-        rec.pixel_rate = self.pixels / max(time.monotonic() - self.t0, 1e-9)
-
-
-def resolve_eps(store: JobStore, eps: float | Estimate) -> JobParams:
-    """Record an estimated eps (and response: an :class:`~worker.noise.Estimate`) in the
-    store's parameters, after checking it fits the others (e.g. a saturation given by hand)."""
-    params = store.params
-    check_options(eps=getattr(eps, "eps", eps), shadow=params.shadow, saturation=params.saturation)
-    params = params.with_eps(eps)
-    store.set_params(params)
-    return params
-
-
-def count_finished(rec: JobRecord, store: JobStore) -> None:
-    """Set the record's counts from what the store's finished tiles hold."""
-    c = store.progress()
-    rec.tiles_done, rec.tiles_total = c.tiles_done, c.tiles_total
-    rec.pixels_done, rec.pixels_total = c.pixels_done, c.pixels_total
-    rec.solved_pixels, rec.certified_pixels = c.solved, c.certified
 
 
 async def run_job(
@@ -82,8 +47,13 @@ async def run_job(
     fair: FairShare | None = None,
     user: str = "",
     tile_time_limit: float | None = None,
+    finish: Callable[[Path], None] | None = None,
 ) -> JobRecord:
     """Run (or resume) every unfinished tile of a job; return its final record.
+
+    ``finish(job_dir)`` runs (in a thread) after the last tile and before the job is
+    recorded done, so a client that sees ``done`` also sees previews and depth; if it
+    fails, the job is still done (the arrays stand) and the failure is logged.
 
     The job ends ``done``, ``failed`` (with a reason) or ``cancelled`` (a cancel
     flag was set in the store). If this coroutine itself is cancelled without a
@@ -194,6 +164,11 @@ async def run_job(
                 "some tiles finished without their done marker; start the job again to finish it"
             )
         await asyncio.to_thread(count_finished, rec, store)
+        if finish is not None:
+            try:
+                await asyncio.to_thread(finish, job_dir)
+            except Exception:
+                log.exception("job %s: previews or depth failed; the results stand", rec.id)
         rec.state, rec.finished_at = JobState.DONE, time.time()
         save()
         return rec

@@ -7,9 +7,12 @@ from pathlib import Path
 
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from worker.errors import InvalidInputError
 from worker.tiles import DEFAULT_TASK_MEMORY
 
 LOOPBACK = ("127.0.0.1", "::1", "localhost")
+#: Where tiles run (:mod:`service.cluster`).
+KINDS = ("local", "slurm", "address")
 
 
 class Settings(BaseSettings):
@@ -112,9 +115,23 @@ class Settings(BaseSettings):
     server: str = "http://127.0.0.1:8000"
     token: str = ""
     #: Tests only: a fault to inject ("pause-mask-write": a mask write stops after its first
-    #: band for a minute, so a test can kill the server mid-write). Empty in real use.
+    #: band for a minute, so a test can kill the server mid-write; "free-bytes:N": the disk
+    #: has N bytes free, whatever it really has). Empty in real use.
     fault: str = ""
 
     @property
     def tokens_file(self) -> Path:
         return Path(self.data_dir) / "maxfs-tokens.json"
+
+
+def cluster_kind(settings: Settings) -> str:
+    """The kind of cluster ``settings`` ask for: ``MAXFS_CLUSTER``, or from ``MAXFS_SCHEDULER``."""
+    kind = (settings.cluster or ("address" if settings.scheduler else "local")).strip().lower()
+    if kind not in KINDS:
+        raise InvalidInputError(f"unknown cluster {settings.cluster!r}: use one of {', '.join(KINDS)}")
+    if kind == "address" and not settings.scheduler:
+        raise InvalidInputError(
+            "cluster 'address' needs the scheduler's address: set MAXFS_SCHEDULER (or --scheduler) "
+            "to e.g. tls://10.0.0.5:8786"
+        )
+    return kind
