@@ -122,10 +122,12 @@ def zip_pieces(files: list[tuple[Path, str]], piece: int = PIECE) -> Iterator[by
 
 def _decimated(arr: zarr.Array, step: int) -> NDArray[Any]:
     """``arr[::step, ::step, ...]``, read in bands of whole chunk rows."""
-    H = arr.shape[0]
+    H, W = arr.shape[:2]
+    out = np.empty((-(-H // step), -(-W // step), *arr.shape[2:]), dtype=arr.dtype)
     rows = max(int(arr.chunks[0]) // step, 1) * step
-    parts = [np.asarray(arr[y : min(y + rows, H) : step, ::step]) for y in range(0, H, rows)]
-    return np.concatenate(parts, axis=0)
+    for y in range(0, H, rows):
+        out[y // step : -(-min(y + rows, H) // step)] = arr[y : min(y + rows, H) : step, ::step]
+    return out
 
 
 def preview_png(store: JobStore, name: str, inputs: tuple[str, ...], max_edge: int) -> bytes:
@@ -138,7 +140,7 @@ def preview_png(store: JobStore, name: str, inputs: tuple[str, ...], max_edge: i
     arrays = {n: _decimated(g[n], step) for n in store.output_names() if n in inputs}
     if name not in PER_PIXEL:  # a scale from the whole image (e.g. albedo's percentile)
         return encode_png(render(name, arrays, store.spec.k))
-    rows = max(1, (1 << 20) // max(W // step, 1))  # render about a million pixels at a time
+    rows = max(1, (1 << 16) // max(W // step, 1))  # render about 64 K pixels at a time
     n = next(iter(arrays.values())).shape[0]
     bands = [
         render(name, {k: a[y : y + rows] for k, a in arrays.items()}, store.spec.k) for y in range(0, n, rows)
