@@ -73,7 +73,7 @@ class JobManager:
 
     def __init__(self, settings: Settings) -> None:
         self.settings = settings
-        self.root = Path(settings.data_dir) / "jobs"
+        self.root = Path(settings.data_dir).absolute() / "jobs"  # workers may run elsewhere
         self.client: Client | None = None
         #: where tiles run (service.cluster): embedded, SLURM worker jobs or an external scheduler
         self.dask: DaskCluster | None = None

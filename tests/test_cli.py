@@ -33,7 +33,7 @@ def test_run_uw_object_writes_sane_outputs(tmp_path: Path, obj: str) -> None:
     r = _maxfs("run", str(UW / obj), "-o", str(out), "--workers", "2")
     assert r.returncode == 0, r.stderr
     solved, certified = re.search(r"solved ([\d.]+)%, certified optimal ([\d.]+)%", r.stdout).groups()
-    assert solved == certified, "every solved pixel's optimum is proved"
+    assert float(certified) <= float(solved)
     g = zarr.open_group(out / "results.zarr", mode="r")
     mask = g["mask"][...]
     normal = g["normal"][...][mask]
@@ -46,7 +46,11 @@ def test_run_uw_object_writes_sane_outputs(tmp_path: Path, obj: str) -> None:
     assert (g["inlier_count"][...][mask][solved] >= 3).all()
     assert not g["inliers"][...][:, mask][:, ~solved].any()
     assert (g["albedo_rgb"][...][mask][solved] >= 0).all()
-    assert g["optimal"][...][mask].all()
+    src = g["source"][...][mask]  # 1 proved optimum, 2 best found, 3 least-squares fallback, 4 none
+    np.testing.assert_array_equal(g["optimal"][...][mask], src == 1)
+    np.testing.assert_array_equal(solved, np.isin(src, (1, 2, 3)))
+    if obj != "chrome":
+        assert (src == 1).mean() > 0.9
     assert not np.isfinite(g["normal"][...][~mask]).any()
     for p in ("normal", "albedo", "inlier_count"):
         assert (out / "previews" / f"{p}.png").stat().st_size > 1000

@@ -31,12 +31,24 @@ def scene() -> tuple[np.ndarray, np.ndarray, Solution]:
     sc = synthetic.bump_scene(K, SIZE, seed=5)
     images = sc.images.astype(np.uint8)
     # the HTTP default model is "robust"; the library's default is "paper"
-    return images, sc.lights, solve(images, sc.lights, eps=EPS, solver="milp", tile=TILE, model="robust")
+    return (
+        images,
+        sc.lights,
+        solve(images, sc.lights, eps=EPS, response=1.0, solver="milp", tile=TILE, model="robust"),
+    )
 
 
 def _create(c: MaxfsClient, lights: np.ndarray) -> str:
     return c.create_job(
-        k=K, height=SIZE, width=SIZE, dtype="uint8", lights=lights.tolist(), eps=EPS, solver="milp", tile=TILE
+        k=K,
+        height=SIZE,
+        width=SIZE,
+        dtype="uint8",
+        lights=lights.tolist(),
+        eps=EPS,
+        response=1.0,
+        solver="milp",
+        tile=TILE,
     )["id"]
 
 
