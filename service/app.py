@@ -39,11 +39,7 @@ from service.previews import HTTP_PREVIEWS, inputs_of
 from service.settings import Settings
 from service.statuses import status_of
 from service.streams import npy_pieces, npy_size, preview_png, zip_pieces
-from storage.layout import JobSpec, JobStore
-from storage.params import JobParams
-from storage.records import JobRecord, JobState
-from storage.tokens import LOCAL_USER, TokenStore, User
-from worker.errors import (
+from storage.errors import (
     AuthError,
     ConflictError,
     InvalidInputError,
@@ -51,6 +47,10 @@ from worker.errors import (
     NotFoundError,
     PayloadTooLargeError,
 )
+from storage.layout import JobSpec, JobStore
+from storage.params import JobParams
+from storage.records import JobRecord, JobState
+from storage.tokens import LOCAL_USER, TokenStore, User
 
 #: Header on result answers: "true" while the job is not done (unfinished tiles hold fill values).
 PARTIAL_HEADER = "X-Maxfs-Partial"

@@ -11,8 +11,8 @@ from typing import Any
 import httpx
 
 from service.settings import LOOPBACK, Settings
+from storage.errors import ConflictError, InvalidInputError, MaxfsError
 from storage.tokens import TokenStore
-from worker.errors import ConflictError, InvalidInputError, MaxfsError
 
 EXIT_USAGE = 2
 

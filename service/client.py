@@ -21,7 +21,7 @@ from pydantic import ValidationError
 from service.models import ErrorBody, JobStatus
 from service.statuses import error_for_status
 from storage.datasets import Dataset, load_folder
-from worker.errors import ConflictError, MaxfsError
+from storage.errors import ConflictError, MaxfsError
 
 FINAL_STATES = ("done", "failed", "cancelled")
 #: Response header that marks partial results (the server's :data:`service.app.PARTIAL_HEADER`).

@@ -50,7 +50,7 @@ from distributed.diagnostics.plugin import WorkerPlugin
 from distributed.security import Security
 
 from service.settings import Settings, cluster_kind
-from worker.errors import ConflictError, InvalidInputError, StoreError
+from storage.errors import ConflictError, InvalidInputError, StoreError
 
 log = logging.getLogger("maxfs.cluster")
 

@@ -13,7 +13,7 @@ import importlib.util
 import logging
 
 from service.settings import LOOPBACK, Settings
-from worker.errors import InvalidInputError
+from storage.errors import InvalidInputError
 
 log = logging.getLogger("maxfs.dashboard")
 

@@ -27,9 +27,9 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
+from storage.errors import InvalidInputError
 from storage.imageio import encode_png
 from storage.layout import JobStore
-from worker.errors import InvalidInputError
 
 ITEMS = ("normal", "albedo", "inlier_count", "depth", "mesh")
 MESH_FORMATS = ("ply", "obj")

@@ -29,8 +29,7 @@ from starlette.requests import ClientDisconnect, Request
 from starlette.responses import JSONResponse
 
 from service.statuses import status_of
-from storage.imageio import decode_checked
-from worker.errors import (
+from storage.errors import (
     AuthError,
     ClientGoneError,
     InsufficientStorageError,
@@ -38,6 +37,7 @@ from worker.errors import (
     QuotaError,
     RequestTimeoutError,
 )
+from storage.imageio import decode_checked
 
 log = logging.getLogger("maxfs.guards")
 

@@ -33,11 +33,7 @@ from service.index import JobIndex
 from service.local import finish
 from service.orchestrator import run_job
 from service.settings import Settings
-from storage.layout import JobSpec, JobStore
-from storage.params import JobParams
-from storage.records import RECORD_NAME, TRANSITIONS, JobRecord, JobState, load_record, save_record
-from storage.tokens import User
-from worker.errors import (
+from storage.errors import (
     ConflictError,
     InvalidInputError,
     NotFoundError,
@@ -45,6 +41,10 @@ from worker.errors import (
     QuotaError,
     StoreError,
 )
+from storage.layout import JobSpec, JobStore
+from storage.params import JobParams
+from storage.records import RECORD_NAME, TRANSITIONS, JobRecord, JobState, load_record, save_record
+from storage.tokens import User
 from worker.tiles import WORK_PER_TILE, grid_shape
 
 log = logging.getLogger("maxfs.jobs")

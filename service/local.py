@@ -23,11 +23,11 @@ from service.progress import ProgressFn
 from service.settings import Settings, cluster_kind
 from service.timings import Timings
 from storage.datasets import Dataset
+from storage.errors import ConflictError, InvalidInputError, StoreError
 from storage.imageio import encode_png
 from storage.layout import GROUP_DIR, JobSpec, JobStore, array_digest, is_job_folder, lights_digest
 from storage.params import JobParams
 from storage.records import JobRecord, JobState, load_record, save_record
-from worker.errors import ConflictError, InvalidInputError, StoreError
 
 
 def ingest(

@@ -22,9 +22,9 @@ from service.cluster import check_store_visible
 from service.fairness import BATCH as FAIR_BATCH
 from service.fairness import FairShare
 from service.progress import ProgressFn, RunCounter, count_finished, resolve_eps
+from storage.errors import JobCancelledError
 from storage.layout import JobStore
 from storage.records import JobRecord, JobState, load_record, save_record
-from worker.errors import JobCancelledError
 from worker.task import TileOutcome, estimate_store_eps, run_tile, warm_up
 
 log = logging.getLogger("maxfs.orchestrator")

@@ -7,7 +7,7 @@ from pathlib import Path
 
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
-from worker.errors import InvalidInputError
+from storage.errors import InvalidInputError
 from worker.tiles import DEFAULT_TASK_MEMORY
 
 LOOPBACK = ("127.0.0.1", "::1", "localhost")

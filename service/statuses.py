@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from worker.errors import (
+from storage.errors import (
     AuthError,
     ConflictError,
     InsufficientStorageError,

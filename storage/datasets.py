@@ -26,8 +26,8 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
+from storage.errors import DatasetError, InvalidInputError
 from storage.imageio import read_image as _decode_file
-from worker.errors import DatasetError, InvalidInputError
 from worker.problem import check_lights
 
 

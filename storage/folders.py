@@ -23,7 +23,7 @@ import tifffile
 from numpy.typing import NDArray
 
 from storage.datasets import Dataset, _existing, _lights, _mask_from, _probe, _read_matrix, read_image
-from worker.errors import DatasetError, InvalidInputError
+from storage.errors import DatasetError, InvalidInputError
 
 IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".tga", ".bmp", ".jpg", ".jpeg")
 LIGHT_FILES = ("light_directions.txt", "lights.txt", "lights.npy")

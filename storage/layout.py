@@ -56,8 +56,8 @@ import numpy as np
 import zarr
 from numpy.typing import NDArray
 
+from storage.errors import ConflictError, InvalidInputError, NotFoundError, StoreError
 from storage.params import JobParams
-from worker.errors import ConflictError, InvalidInputError, NotFoundError, StoreError
 from worker.observations import ObservationModel
 from worker.problem import check_lights
 from worker.solve import TileResult

@@ -7,7 +7,7 @@ import json
 from dataclasses import asdict, dataclass, replace
 from typing import Any
 
-from worker.errors import InvalidInputError
+from storage.errors import InvalidInputError
 from worker.noise import Estimate
 from worker.problem import DEFAULT_BOX_FACTOR, MODEL_DEFAULTS, Model, check_options
 from worker.solve import DEFAULT_MAX_NODES, DEFAULT_MILP_TIME_LIMIT, Solver

@@ -15,7 +15,7 @@ from enum import StrEnum
 from pathlib import Path
 from typing import Any
 
-from worker.errors import ConflictError, StoreError
+from storage.errors import ConflictError, StoreError
 
 RECORD_NAME = "maxfs-job.json"
 #: Below this share of solved masked pixels a result comes with a loud warning.

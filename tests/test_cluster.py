@@ -16,8 +16,8 @@ from distributed.security import Security
 
 from service.cluster import cluster_kind, open_cluster, slurm_job_kwargs, walltime_seconds, worker_lifetime
 from service.settings import Settings
+from storage.errors import InvalidInputError
 from tests.procs import Server, free_port
-from worker.errors import InvalidInputError
 
 
 @dataclass(frozen=True)

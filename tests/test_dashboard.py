@@ -8,7 +8,7 @@ import pytest
 
 from service.dashboard import EXTRA, check_dashboard, dashboard_host
 from service.settings import Settings
-from worker.errors import InvalidInputError
+from storage.errors import InvalidInputError
 
 
 @pytest.mark.parametrize(

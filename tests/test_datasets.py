@@ -10,9 +10,9 @@ import pytest
 import tifffile
 
 from storage.datasets import load_folder, write_npy_folder
+from storage.errors import DatasetError
 from tests.data import UW, UW_OBJECTS, needs_shared
 from worker import synthetic
-from worker.errors import DatasetError
 
 
 @needs_shared

@@ -11,11 +11,11 @@ import pytest
 import tifffile
 
 from storage.datasets import load_folder
+from storage.errors import DatasetError, InvalidInputError
 from storage.folders import conditioning_warning, parse_selection, select_images
 from storage.imageio import encode_png
 from storage.layout import JobStore
 from worker import synthetic
-from worker.errors import DatasetError, InvalidInputError
 
 MAXFS = str(Path(sys.executable).parent / "maxfs")
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from storage.errors import InvalidInputError
 from worker import synthetic
-from worker.errors import InvalidInputError
 from worker.milp import MilpSolver
 from worker.problem import make_thresholds, usable
 from worker.solve import Solver, solve, solve_pixels

@@ -19,10 +19,10 @@ import numpy as np
 import pytest
 
 from service.client import MaxfsClient
+from storage.errors import MaxfsError
 from tests import browser
 from tests.procs import Server, poll_until
 from worker import synthetic
-from worker.errors import MaxfsError
 
 #: The running job: the MILP solver on 128 x 128 pixels in 16 x 16 tiles takes tens of seconds on one
 #: worker, long enough to watch; the job started from the page is small and exact (a second or two).

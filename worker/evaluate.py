@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from worker.errors import InvalidInputError
+from storage.errors import InvalidInputError
 
 THRESHOLDS = (5.0, 10.0, 15.0, 20.0)
 

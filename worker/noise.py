@@ -46,7 +46,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from worker.errors import InvalidInputError
+from storage.errors import InvalidInputError
 from worker.lstsq import refit
 from worker.problem import drop_brightest
 

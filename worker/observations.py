@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from worker.errors import InvalidInputError
+from storage.errors import InvalidInputError
 
 
 @dataclass(frozen=True)

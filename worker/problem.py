@@ -46,7 +46,7 @@ from enum import StrEnum
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from worker.errors import InvalidInputError
+from storage.errors import InvalidInputError
 
 #: Default half-width of the box on ``n`` in units of the pixel's largest ``b_i``.
 #: 10 admits albedos up to ten times the brightest observation (``L.N >= 0.1``).

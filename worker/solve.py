@@ -20,7 +20,7 @@ from enum import IntEnum, StrEnum
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from worker.errors import InvalidInputError
+from storage.errors import InvalidInputError
 from worker.exact import exact_pixels
 from worker.lstsq import channel_albedo, normal_albedo, refit
 from worker.milp import MilpSolver

@@ -15,9 +15,9 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
+from storage.errors import StoreError
 from storage.layout import JobStore
 from worker.cancel import TileCancelled, cancel_points
-from worker.errors import StoreError
 from worker.noise import Estimate
 from worker.problem import make_thresholds
 from worker.solve import estimate_job, solve_tile
