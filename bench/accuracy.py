@@ -39,8 +39,9 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
+from storage.outputs import Source
 from worker import synthetic
-from worker.solve import Solution, Source, solve
+from worker.solve import Solution, solve
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 

@@ -26,9 +26,9 @@ from pathlib import Path
 import numpy as np
 
 from storage.layout import JobStore
+from storage.tiles import DEFAULT_TASK_MEMORY, tile_memory
 from tests.procs import BIN, DaskCluster
 from worker import synthetic
-from worker.tiles import DEFAULT_TASK_MEMORY, tile_memory
 
 
 def write_stack(folder: Path, k: int, size: int, seed: int = 0) -> Path:

@@ -22,8 +22,8 @@ from numpy.typing import NDArray
 from service.progress import ProgressFn, RunCounter, count_finished, resolve_eps
 from storage.layout import JobStore
 from storage.records import JobRecord, JobState, load_record, save_record
+from storage.tiles import Tile
 from worker.task import TileOutcome, compute_tile, estimate_eps_of
-from worker.tiles import Tile
 
 
 def tile_order(store: JobStore, todo: list[Tile]) -> list[Tile]:

@@ -44,8 +44,8 @@ from storage.errors import (
 from storage.layout import JobSpec, JobStore
 from storage.params import JobParams
 from storage.records import RECORD_NAME, TRANSITIONS, JobRecord, JobState, load_record, save_record
+from storage.tiles import WORK_PER_TILE, grid_shape
 from storage.tokens import User
-from worker.tiles import WORK_PER_TILE, grid_shape
 
 log = logging.getLogger("maxfs.jobs")
 #: Prefix of every temporary file a process writes in a job folder (removed on start).
@@ -179,7 +179,7 @@ class JobManager:
     def resolve_tile(self, spec: JobSpec, tile: int | str, solver: str) -> int:
         """The tile edge of a new job: "auto", or one given by hand, which must fit the task
         memory (:meth:`JobSpec.check_tile`) and the work per task that "auto" keeps to:
-        ``tile**2 * k`` at most :data:`worker.tiles.WORK_PER_TILE` (a sixteenth of it for the
+        ``tile**2 * k`` at most :data:`storage.tiles.WORK_PER_TILE` (a sixteenth of it for the
         MILP, about a hundred times slower per pixel), so one task lasts seconds, not hours."""
         edge = spec.resolve_tile(tile, self.settings.task_memory)
         if tile != "auto":

@@ -9,7 +9,7 @@ from fastapi.security import HTTPBearer
 
 from service.models import ErrorBody, JobStatus
 from service.previews import HTTP_PREVIEWS
-from storage.layout import OUTPUTS
+from storage.outputs import OUTPUT_NAMES
 
 #: The security scheme of every ``/jobs`` route (Swagger UI's "Authorize" button). It only documents
 #: and never refuses (``auto_error=False``): :func:`service.app.make_auth` checks the token.
@@ -94,5 +94,5 @@ ZIP_ANSWER = binary(
 
 #: Path parameters whose values are a fixed set: documented as enums, while an unknown name still
 #: answers 404 with the list of names (not a validation error).
-RESULT_NAME_SCHEMA = {"enum": list(OUTPUTS)}
+RESULT_NAME_SCHEMA = {"enum": list(OUTPUT_NAMES)}
 PREVIEW_NAME_SCHEMA = {"enum": list(HTTP_PREVIEWS)}

@@ -5,6 +5,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
+from storage.outputs import PREVIEW_NAMES, TILE_OUTPUTS
+
 
 def normal_rgb(normal: NDArray[np.floating]) -> NDArray[np.uint8]:
     """255 * (n + 1) / 2 for all three components (the field's convention); black where undefined."""
@@ -23,11 +25,13 @@ def scaled_grey(values: NDArray[np.floating], top: float | None = None) -> NDArr
     return np.clip(np.round(255 * v / max(top, 1e-12)), 0, 255).astype(np.uint8)
 
 
-PREVIEWS = ("normal", "albedo", "inlier_count")
-#: Output arrays the previews read (never ``inliers``, which is k times larger).
-PREVIEW_INPUTS = ("normal", "albedo", "albedo_rgb", "inlier_count")
+#: Previews rendered from the tiles' outputs (the table's previewable tile outputs).
+PREVIEWS = tuple(o.name for o in TILE_OUTPUTS if o.preview)
+#: Output arrays the previews read (never ``inliers``, which is k times larger; the albedo
+#: preview is in colour where ``albedo_rgb`` exists).
+PREVIEW_INPUTS = (*PREVIEWS, "albedo_rgb")
 #: Previews the server renders: the above, and ``depth`` (a shaded relief) once the store has a depth.
-HTTP_PREVIEWS = (*PREVIEWS, "depth")
+HTTP_PREVIEWS = PREVIEW_NAMES
 
 
 def inputs_of(name: str) -> tuple[str, ...]:

@@ -10,10 +10,9 @@ import time
 from collections.abc import Callable
 
 from storage.layout import JobStore
+from storage.options import Estimate, check_options
 from storage.params import JobParams
 from storage.records import JobRecord
-from worker.noise import Estimate
-from worker.problem import check_options
 from worker.task import TileOutcome
 
 ProgressFn = Callable[[JobRecord], None]

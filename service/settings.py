@@ -8,7 +8,7 @@ from pathlib import Path
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from storage.errors import InvalidInputError
-from worker.tiles import DEFAULT_TASK_MEMORY
+from storage.tiles import DEFAULT_TASK_MEMORY
 
 LOOPBACK = ("127.0.0.1", "::1", "localhost")
 #: Where tiles run (:mod:`service.cluster`).

@@ -28,7 +28,7 @@ from numpy.typing import NDArray
 
 from storage.errors import DatasetError, InvalidInputError
 from storage.imageio import read_image as _decode_file
-from worker.problem import check_lights
+from storage.options import check_lights
 
 
 @dataclass(frozen=True)

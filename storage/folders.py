@@ -179,7 +179,7 @@ def parse_selection(text: str, k: int) -> list[int]:
 
 def select_images(ds: Dataset, indices: list[int]) -> Dataset:
     """The dataset restricted to ``indices`` (0-based), in that order."""
-    from worker.problem import check_lights
+    from storage.options import check_lights
 
     idx = list(indices)
     try:
@@ -206,7 +206,7 @@ def select_images(ds: Dataset, indices: list[int]) -> Dataset:
 
 def conditioning_warning(lights: NDArray[np.floating]) -> str | None:
     """A warning when the lights' condition number is above ``WARN_LIGHT_CONDITION`` (yet accepted)."""
-    from worker.problem import WARN_LIGHT_CONDITION, light_condition, light_singular_values
+    from storage.options import WARN_LIGHT_CONDITION, light_condition, light_singular_values
 
     cond = light_condition(lights)
     if cond <= WARN_LIGHT_CONDITION:

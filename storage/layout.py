@@ -47,7 +47,7 @@ import hashlib
 import json
 import os
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -57,11 +57,11 @@ import zarr
 from numpy.typing import NDArray
 
 from storage.errors import ConflictError, InvalidInputError, NotFoundError, StoreError
+from storage.observations import ObservationModel
+from storage.options import DTYPES, check_lights
+from storage.outputs import OUTPUT_NAMES, OUTPUT_TABLE, OUTPUTS_BY_NAME, TILE_OUTPUTS, output_bytes_per_pixel
 from storage.params import JobParams
-from worker.observations import ObservationModel
-from worker.problem import check_lights
-from worker.solve import TileResult
-from worker.tiles import Tile, auto_tile, grid_shape, tile_memory, tiles
+from storage.tiles import Tile, auto_tile, grid_shape, tile_memory, tiles
 
 
 class ArrayHasher:
@@ -112,55 +112,32 @@ BULK_INPUTS = frozenset({"images"})
 DIGEST_BYTES = 32
 #: ``input_digests[k]`` while a mask is being written (a crash leaves it there).
 MASK_WRITING = bytes([0xFF]) * DIGEST_BYTES
-DTYPES = ("uint8", "uint16", "float32")
 RUNS_LOG = "maxfs-runs.log"
 CANCEL_FLAG = "maxfs-cancel"
-#: Output arrays a client may fetch.
-OUTPUTS = ("normal", "albedo", "albedo_rgb", "inliers", "inlier_count", "optimal", "source", "mask", "depth")
-#: Zarr v3 ``dimension_names`` of every array (``images`` gets ``channel`` last for colour input), so
-#: ``xarray.open_zarr`` reads a store as a Dataset with named dimensions.
+#: Zarr v3 ``dimension_names`` of the arrays that are not outputs (``images`` gets ``channel`` last for
+#: colour input); the outputs' are in :data:`storage.outputs.OUTPUT_TABLE`. So ``xarray.open_zarr``
+#: reads a store as a Dataset with named dimensions.
 DIMS: dict[str, tuple[str, ...]] = {
     "images": ("image", "y", "x"),
     "uploaded": ("image",),
     "lights": ("image", "xyz"),
     "intensities": ("image", "channel"),
-    "mask": ("y", "x"),
-    "normal": ("y", "x", "xyz"),
-    "albedo": ("y", "x"),
-    "albedo_rgb": ("y", "x", "channel"),
-    "inliers": ("image", "y", "x"),
-    "inlier_count": ("y", "x"),
-    "optimal": ("y", "x"),
-    "source": ("y", "x"),
-    "depth": ("y", "x"),
     "done": ("tile_y", "tile_x"),
     "tile_stats": ("tile_y", "tile_x", "tile_count"),
     "input_digests": ("input", "digest_byte"),
+    **{o.name: o.dims for o in OUTPUT_TABLE},
 }
-#: ``long_name`` (and ``units``) attributes of the arrays, for xarray and other readers.
+#: ``long_name`` attributes of the arrays that are not outputs, for xarray and other readers.
 DESCRIPTIONS: dict[str, dict[str, str]] = {
     "images": {"long_name": "input images as stored (raw values)"},
     "uploaded": {"long_name": "image i is completely stored"},
     "lights": {"long_name": "unit light directions (x right, y up, z toward the camera)"},
     "intensities": {"long_name": "light intensities per image and channel"},
-    "mask": {"long_name": "pixels to solve"},
-    "normal": {"long_name": "unit surface normal (x right, y up, z toward the camera); NaN where unsolved"},
-    "albedo": {"long_name": "albedo (grey), in image units; 0 where unsolved"},
-    "albedo_rgb": {"long_name": "albedo per colour channel, in image units; 0 where unsolved"},
-    "inliers": {"long_name": "image i obeys the Lambertian law at this pixel (the optimal inlier set)"},
-    "inlier_count": {"long_name": "number of inlier images (the Max-FS optimum)", "units": "images"},
-    "optimal": {"long_name": "the optimum is proved"},
-    "source": {
-        "long_name": "how the normal was obtained: 0 outside the mask, 1 Max-FS optimum proved, "
-        "2 Max-FS best found within the budget, 3 least-squares fit (l2 solver or fallback), "
-        "4 undetermined (no normal)"
-    },
     "done": {"long_name": "per-tile marker: equal to the parameter token when the tile is finished"},
     "tile_stats": {"long_name": "per tile: active, solved and certified pixels"},
     "input_digests": {"long_name": "BLAKE2b-256 of image i; last row: the mask"},
+    **{o.name: o.attrs() for o in OUTPUT_TABLE},
 }
-#: Outputs indexed (image, y, x); every other output is (y, x[, ...]).
-IMAGE_FIRST = frozenset({"inliers"})
 
 
 @dataclass(frozen=True)
@@ -218,12 +195,10 @@ class JobSpec:
 
     def store_nbytes(self) -> int:
         """Upper bound of the job's size on disk (images and outputs, uncompressed)."""
-        C = self.channels or 1
-        per_pixel = 12 + 4 + (4 * C if self.channels else 0) + self.k + 2 + 1 + 1 + 1
-        return self.k * self.image_nbytes + self.pixels * per_pixel
+        return self.k * self.image_nbytes + self.pixels * output_bytes_per_pixel(self.k, self.channels)
 
     def auto_tile(self, memory: int) -> int:
-        """Tile edge for this stack and a per-task memory budget (see :func:`worker.tiles.auto_tile`)."""
+        """Tile edge for this stack and a per-task memory budget (see :func:`storage.tiles.auto_tile`)."""
         return auto_tile(self.k, self.channels, self.itemsize, memory, self.pixels)
 
     def resolve_tile(self, tile: int | str, memory: int) -> int:
@@ -322,56 +297,14 @@ class JobStore:
         )
         g.create_array("lights", data=spec.lights, dimension_names=DIMS["lights"])
         g.create_array("intensities", data=spec.intensities, dimension_names=DIMS["intensities"])
-        g.create_array(
-            "mask", shape=(H, W), chunks=tc, dtype="bool", fill_value=True, dimension_names=DIMS["mask"]
-        )
-        g.create_array(
-            "normal",
-            shape=(H, W, 3),
-            chunks=(*tc, 3),
-            dtype="float32",
-            fill_value=np.nan,
-            dimension_names=DIMS["normal"],
-        )
-        g.create_array(
-            "albedo", shape=(H, W), chunks=tc, dtype="float32", fill_value=0.0, dimension_names=DIMS["albedo"]
-        )
-        if C is not None:
+        for o in OUTPUT_TABLE:
+            if o.made == "after" or not o.exists(C):
+                continue  # depth is made after the run (service.research); albedo_rgb needs colour
+            shape = o.shape(k, H, W, C)
+            chunks = tuple({"y": tc[0], "x": tc[1]}.get(d, n) for d, n in zip(o.dims, shape, strict=True))
             g.create_array(
-                "albedo_rgb",
-                shape=(H, W, C),
-                chunks=(*tc, C),
-                dtype="float32",
-                fill_value=0.0,
-                dimension_names=DIMS["albedo_rgb"],
+                o.name, shape=shape, chunks=chunks, dtype=o.dtype, fill_value=o.fill, dimension_names=o.dims
             )
-        g.create_array(
-            "inliers",
-            shape=(k, H, W),
-            chunks=(k, *tc),
-            dtype="bool",
-            fill_value=False,
-            dimension_names=DIMS["inliers"],
-        )
-        g.create_array(
-            "inlier_count",
-            shape=(H, W),
-            chunks=tc,
-            dtype="uint16",
-            fill_value=0,
-            dimension_names=DIMS["inlier_count"],
-        )
-        g.create_array(
-            "optimal",
-            shape=(H, W),
-            chunks=tc,
-            dtype="bool",
-            fill_value=False,
-            dimension_names=DIMS["optimal"],
-        )
-        g.create_array(
-            "source", shape=(H, W), chunks=tc, dtype="uint8", fill_value=0, dimension_names=DIMS["source"]
-        )
         g.create_array(
             "done",
             shape=grid_shape(H, W, T),
@@ -597,33 +530,33 @@ class JobStore:
 
     def write_empty_tile(self, t: Tile, token: int) -> None:
         """A tile with no masked pixel: every output at its fill value, zero stats, done marker."""
-        ys, xs = slice(t.y0, t.y1), slice(t.x0, t.x1)
-        g = self.group
-        for name in self.output_names():
-            if name == "mask":
-                continue
-            a = g[name]
-            if name in IMAGE_FIRST:
-                a[:, ys, xs] = a.fill_value
-            else:
-                a[ys, xs] = a.fill_value
-        g["tile_stats"][t.ty, t.tx] = np.zeros(3, dtype=np.int64)
-        g["done"][t.ty, t.tx] = token
+        self._write_outputs(t, {}, token, (0, 0, 0))
 
-    def write_tile(self, t: Tile, r: TileResult, token: int, stats: tuple[int, int, int]) -> None:
-        """Write a tile's outputs (whole chunks) and ``stats`` (active, solved, certified
-        pixels), then its done marker, last."""
+    def write_tile(
+        self, t: Tile, arrays: Mapping[str, NDArray[Any]], token: int, stats: tuple[int, int, int]
+    ) -> None:
+        """Write a tile's outputs (whole chunks; ``arrays`` maps names of
+        :data:`storage.outputs.TILE_OUTPUTS` to the tile's values) and ``stats`` (active,
+        solved, certified pixels), then its done marker, last."""
+        missing = [o.name for o in TILE_OUTPUTS if o.exists(self.spec.channels) and o.name not in arrays]
+        if missing:
+            raise ValueError(f"tile result lacks {', '.join(missing)}")
+        self._write_outputs(t, arrays, token, stats)
+
+    def _write_outputs(
+        self, t: Tile, arrays: Mapping[str, NDArray[Any]], token: int, stats: tuple[int, int, int]
+    ) -> None:
         ys, xs = slice(t.y0, t.y1), slice(t.x0, t.x1)
         g = self.group
-        g["normal"][ys, xs] = r.normal
-        g["albedo"][ys, xs] = r.albedo
-        if r.albedo_rgb is not None and "albedo_rgb" in g:
-            g["albedo_rgb"][ys, xs] = r.albedo_rgb
-        g["inliers"][:, ys, xs] = r.inliers
-        g["inlier_count"][ys, xs] = r.inlier_count
-        g["optimal"][ys, xs] = r.optimal
-        if r.source is not None and "source" in g:
-            g["source"][ys, xs] = r.source
+        for o in TILE_OUTPUTS:
+            if not o.exists(self.spec.channels):
+                continue
+            a = g[o.name]
+            value = arrays.get(o.name, a.fill_value)
+            if o.per == "image":
+                a[:, ys, xs] = value
+            else:
+                a[ys, xs] = value
         g["tile_stats"][t.ty, t.tx] = np.asarray(stats, dtype=np.int64)
         g["done"][t.ty, t.tx] = token
 
@@ -646,12 +579,12 @@ class JobStore:
         )
 
     def read_output(self, name: str) -> NDArray[Any]:
-        if name not in OUTPUTS or name not in self.group:
+        if name not in OUTPUTS_BY_NAME or name not in self.group:
             raise NotFoundError(f"no output array {name!r}; available: {', '.join(self.output_names())}")
         return np.asarray(self.group[name][...])
 
     def output_names(self) -> list[str]:
-        return [n for n in OUTPUTS if n in self.group]
+        return [n for n in OUTPUT_NAMES if n in self.group]
 
     def download_files(self, include_inputs: bool = False) -> list[tuple[Path, str]]:
         """Files of a results download, as (path, name in the archive): the Zarr group without

@@ -8,10 +8,20 @@ from dataclasses import asdict, dataclass, replace
 from typing import Any
 
 from storage.errors import InvalidInputError
-from worker.noise import Estimate
-from worker.problem import DEFAULT_BOX_FACTOR, MODEL_DEFAULTS, Model, check_options
-from worker.solve import DEFAULT_MAX_NODES, DEFAULT_MILP_TIME_LIMIT, Solver
-from worker.tiles import DEFAULT_TILE
+from storage.options import (
+    DEFAULT_BOX_FACTOR,
+    DEFAULT_MAX_NODES,
+    DEFAULT_MILP_TIME_LIMIT,
+    MODEL_DEFAULTS,
+    Estimate,
+    Model,
+    Solver,
+    check_options,
+)
+from storage.tiles import DEFAULT_TILE
+
+#: Fields that record what was asked for, not what was used: left out of :meth:`JobParams.digest`.
+REQUEST_FIELDS = frozenset({"eps_request", "response_request"})
 
 
 @dataclass(frozen=True)
@@ -152,10 +162,13 @@ class JobParams:
         return cls(**d)
 
     def digest(self) -> str:
-        """Hash of the parameters that change results (needs a resolved eps)."""
+        """Hash of the parameters that change results (needs a resolved eps): every field
+        but what the user asked for (:data:`REQUEST_FIELDS`), since a resolved eps of 7.0
+        gives the same tiles whether it was asked for or estimated."""
         if self.eps is None:
             raise InvalidInputError("eps is not resolved yet")
-        blob = json.dumps(self.to_json(), sort_keys=True).encode()
+        fields = {k: v for k, v in self.to_json().items() if k not in REQUEST_FIELDS}
+        blob = json.dumps(fields, sort_keys=True).encode()
         return hashlib.sha256(blob).hexdigest()[:16]
 
     def token(self) -> int:

@@ -8,8 +8,8 @@ import dataclasses
 import numpy as np
 import pytest
 
+from storage.observations import ObservationModel
 from worker import synthetic
-from worker.observations import ObservationModel
 from worker.problem import make_thresholds
 from worker.solve import TileResult, solve_pixels, solve_tile
 

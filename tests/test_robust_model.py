@@ -10,14 +10,16 @@ import numpy as np
 import pytest
 
 from storage.layout import JobSpec, JobStore
+from storage.observations import ObservationModel
+from storage.options import Estimate
+from storage.outputs import Source
 from storage.params import JobParams
 from worker import synthetic
 from worker.exact import exact_pixels
 from worker.milp import MilpSolver
-from worker.noise import Estimate, estimate_eps, select_response
-from worker.observations import ObservationModel
+from worker.noise import estimate_eps, select_response
 from worker.problem import REL_TOL, candidates, make_thresholds, shading, slabs
-from worker.solve import Source, eps_sample, solve, solve_pixels
+from worker.solve import eps_sample, solve, solve_pixels
 from worker.task import estimate_eps_of
 
 

@@ -6,10 +6,11 @@ import numpy as np
 import pytest
 
 from storage.errors import InvalidInputError
+from storage.options import Solver
 from worker import synthetic
 from worker.milp import MilpSolver
 from worker.problem import make_thresholds, usable
-from worker.solve import Solver, solve, solve_pixels
+from worker.solve import solve, solve_pixels
 
 
 @pytest.mark.parametrize(("k", "paper_deg"), [(12, 0.138), (24, 0.085)])

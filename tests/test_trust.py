@@ -221,7 +221,7 @@ def test_validating_lights_again_changes_no_bit() -> None:
     """The input identity digests validated lights: validating twice (loader, CLI, store)
     must not move them by an ulp, or a re-run would see "other inputs"."""
     from storage.layout import JobSpec, lights_digest
-    from worker.problem import check_lights
+    from storage.options import check_lights
 
     rng = np.random.default_rng(0)
     raw = synthetic.lights_uniform(96) * (1 + 1e-7 * rng.standard_normal((96, 1)))

@@ -326,7 +326,7 @@ def test_openapi_is_generated_from_the_code_and_typed(server: Server, tmp_path: 
     from service.app import create_app
     from service.previews import HTTP_PREVIEWS
     from service.settings import Settings
-    from storage.layout import OUTPUTS
+    from storage.outputs import OUTPUT_NAMES as OUTPUTS
 
     live = httpx.get(server.url + "/openapi.json", timeout=30).json()
     assert live == create_app(Settings(data_dir=tmp_path, auth=True)).openapi()  # nothing written by hand

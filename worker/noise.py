@@ -41,12 +41,11 @@ and mask only, never on the tile grid, so every path gets the same numbers.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 from numpy.typing import NDArray
 
 from storage.errors import InvalidInputError
+from storage.options import Estimate
 from worker.lstsq import refit
 from worker.problem import drop_brightest
 
@@ -63,15 +62,6 @@ MIN_USABLE = 6
 #: The robust model's noise: the smallest residual sigma among this many intensity bins.
 NOISE_BINS = 10
 MIN_PER_BIN = 50
-
-
-@dataclass(frozen=True)
-class Estimate:
-    """What a job resolves before its tiles run."""
-
-    eps: float  # tolerance, intensity units
-    response: float  # g of I = (L.n)^g
-    sigma: float  # robust noise sigma the eps came from (0 when eps was given)
 
 
 def _rows(usable: NDArray[np.bool_], sample: int, seed: int) -> NDArray[np.intp]:

@@ -15,57 +15,30 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass
-from enum import IntEnum, StrEnum
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from storage.errors import InvalidInputError
-from worker.exact import exact_pixels
-from worker.lstsq import channel_albedo, normal_albedo, refit
-from worker.milp import MilpSolver
-from worker.noise import Estimate, estimate_model
-from worker.observations import ObservationModel
-from worker.problem import (
+from storage.observations import ObservationModel
+from storage.options import (
     DEFAULT_BOX_FACTOR,
+    DEFAULT_MAX_NODES,
+    DEFAULT_MILP_TIME_LIMIT,
     MAX_LIGHT_CONDITION,
     MODEL_DEFAULTS,
+    Estimate,
     Model,
-    Thresholds,
-    candidates,
+    Solver,
     check_lights,
     check_options,
-    make_thresholds,
-    shading,
-    slabs,
-    usable,
 )
-from worker.tiles import DEFAULT_TILE, Tile, tiles
-
-#: Per-pixel search budget of the exact solver before it falls back to the MILP.
-DEFAULT_MAX_NODES = 200_000
-#: Seconds the MILP may spend on one pixel (as reference, or as fallback).
-DEFAULT_MILP_TIME_LIMIT = 30.0
-
-
-class Solver(StrEnum):
-    """Available solvers."""
-
-    EXACT = "exact"  #: branch and bound, exact and fast (default)
-    MILP = "milp"  #: the paper's big-M MILP with HiGHS (reference)
-    L2 = "l2"  #: Woodham least squares on every image (baseline, not robust)
-
-
-class Source(IntEnum):
-    """How a pixel's normal was obtained: the ``source`` output (uint8)."""
-
-    MASKED = 0  #: outside the mask: not solved
-    CERTIFIED = 1  #: Max-FS optimum, proved (exact solver or MILP)
-    BEST_FOUND = 2  #: Max-FS, best inlier set found within the budget, not proved optimal
-    FIT = 3  #: least squares, nothing proved: the l2 solver, or the fallback of the robust
-    #: model where Max-FS gives no normal (< 3 candidates, or rank-deficient inliers)
-    UNDETERMINED = 4  #: no normal: the usable lights do not determine one (rank < 3 or
-    #: badly conditioned); NaN normal, albedo 0
+from storage.outputs import TILE_OUTPUTS, Source
+from storage.tiles import DEFAULT_TILE, Tile, tiles
+from worker.lstsq import channel_albedo, normal_albedo, refit
+from worker.noise import estimate_model
+from worker.problem import Thresholds, make_thresholds, shading, usable
+from worker.solvers import SOLVERS, Batch
 
 
 @dataclass(frozen=True)
@@ -133,46 +106,15 @@ def solve_pixels(
         Exact solver's per-pixel budget; a pixel that exhausts it is solved by the
         MILP with ``milp_time_limit``; if that stops early too, ``optimal`` is False.
     """
-    solver = Solver(solver)
+    impl = SOLVERS[Solver(solver)]
     I = np.asarray(I, dtype=np.float64)
-    P, k = I.shape
+    P = I.shape[0]
     act = np.ones(P, dtype=bool) if active is None else np.asarray(active, dtype=bool)
     S = shading(I, th)  # what L.n should match: I, or I^(1/g) under a response
-    nodes = np.zeros(P, dtype=np.int64)
-    optimal = np.zeros(P, dtype=bool)
-    source = np.full(P, Source.UNDETERMINED, dtype=np.uint8)
-    if solver is Solver.L2:
-        inl = np.isfinite(I) & act[:, None]
-        point = refit(S, inl, L)
-        source[:] = Source.FIT  # least squares proves no optimum
-    else:
-        valid = candidates(I, th, outlier, act)
-        point = np.full((P, 3), np.nan)
-        inl = np.zeros((P, k), dtype=bool)
-        rows = np.flatnonzero(valid.sum(axis=1) >= 3)
-        if rows.size:
-            lo, hi = slabs(I[rows], th)
-            if solver is Solver.EXACT:
-                pt, il, _, nd, cert = exact_pixels(S[rows], lo, hi, valid[rows], L, th.box_factor, max_nodes)
-                nodes[rows] = nd
-                redo = np.flatnonzero(~cert)
-                if redo.size:  # budget exhausted: the MILP decides
-                    ms = MilpSolver(L, milp_time_limit)
-                    r2 = rows[redo]
-                    mpt, mil, _, mcert, _ = ms.solve_pixels(
-                        S[r2], valid[r2], (lo[redo], hi[redo]), th.box_factor
-                    )
-                    better = mil.sum(axis=1) >= il[redo].sum(axis=1)
-                    pt[redo[better]] = mpt[better]
-                    il[redo[better]] = mil[better]
-                    cert[redo] = mcert
-            else:
-                ms = MilpSolver(L, milp_time_limit)
-                pt, il, _, cert, _ = ms.solve_pixels(S[rows], valid[rows], (lo, hi), th.box_factor)
-            point[rows], inl[rows], optimal[rows] = pt, il, cert
-            source[rows] = np.where(cert, Source.CERTIFIED, Source.BEST_FOUND)
+    found = impl.search(Batch(I, S, L, th, act, outlier, max_nodes, milp_time_limit))
+    point, inl, optimal, nodes, source = found.point, found.inliers, found.optimal, found.nodes, found.source
     n = refit(S, inl, L, MAX_LIGHT_CONDITION)  # a badly conditioned inlier set determines no normal
-    if th.fallback and solver is not Solver.L2:
+    if th.fallback and impl.max_fs:
         need = np.flatnonzero(act & ~np.isfinite(n[:, 0]))
         if need.size:  # least squares on the non-zero, unsaturated observations
             fb = usable(I[need].T, _no_shadow(th)).T
@@ -310,6 +252,12 @@ class TileResult:
     nodes: int  # exact-solver search nodes spent on the tile
     source: NDArray[np.uint8] | None = None  # (h, w) how each normal was obtained
 
+    def outputs(self) -> dict[str, NDArray]:
+        """The arrays of :data:`storage.outputs.TILE_OUTPUTS` by name (``albedo_rgb`` only for
+        colour input): what :meth:`storage.layout.JobStore.write_tile` stores."""
+        out = {o.name: getattr(self, o.name) for o in TILE_OUTPUTS}
+        return {name: a for name, a in out.items() if a is not None}
+
 
 def solve_tile(
     raw: NDArray,
@@ -422,7 +370,7 @@ def solve(
         ``saturation`` (in units after division) applies to the grey value.
     tile
         Tile edge; pixels are solved tile by tile exactly as the service does, so
-        results equal the service's for the same tile size (see :mod:`worker.tiles`).
+        results equal the service's for the same tile size (see :mod:`storage.tiles`).
     model
         ``"paper"`` (default here: Yu, Seo, Lee 2010 as published) or ``"robust"`` (the
         CLI and HTTP default); see :mod:`worker.problem`. The options below left None
@@ -433,7 +381,7 @@ def solve(
         See :class:`worker.problem.Thresholds`.
     dequantize
         Integer input: read a raw value ``v > 0`` as ``v + 0.5`` (see
-        :class:`worker.observations.ObservationModel`).
+        :class:`storage.observations.ObservationModel`).
     """
     arr = np.asarray(images)
     if arr.ndim not in (3, 4):
@@ -482,13 +430,7 @@ def solve(
         fallback=fallback,
     )
     C = arr.shape[3] if arr.ndim == 4 else None
-    normal = np.empty((H, W, 3), np.float32)
-    albedo = np.empty((H, W), np.float32)
-    albedo_rgb = None if C is None else np.empty((H, W, C), np.float32)
-    inliers = np.empty((k, H, W), bool)
-    count = np.empty((H, W), np.uint16)
-    optimal = np.empty((H, W), bool)
-    source = np.empty((H, W), np.uint8)
+    full = {o.name: np.empty(o.shape(k, H, W, C), o.dtype) for o in TILE_OUTPUTS if o.exists(C)}
     for t in tiles(H, W, tile):
         ys, xs = slice(t.y0, t.y1), slice(t.x0, t.x1)
         r = solve_tile(
@@ -501,12 +443,21 @@ def solve(
             max_nodes=max_nodes,
             milp_time_limit=milp_time_limit,
         )
-        normal[ys, xs] = r.normal
-        albedo[ys, xs] = r.albedo
-        if albedo_rgb is not None and r.albedo_rgb is not None:
-            albedo_rgb[ys, xs] = r.albedo_rgb
-        inliers[:, ys, xs] = r.inliers
-        count[ys, xs] = r.inlier_count
-        optimal[ys, xs] = r.optimal
-        source[ys, xs] = r.source
-    return Solution(normal, albedo, albedo_rgb, inliers, count, optimal, eps_v, source, resp_v)
+        for o in TILE_OUTPUTS:
+            if o.name in full:
+                if o.per == "image":
+                    full[o.name][:, ys, xs] = getattr(r, o.name)
+                else:
+                    full[o.name][ys, xs] = getattr(r, o.name)
+    return Solution(
+        full["normal"],
+        full["albedo"],
+        full.get("albedo_rgb"),
+        full["inliers"],
+        full["inlier_count"],
+        full["optimal"],
+        eps_v,
+        full["source"],
+        resp_v,
+    )
+

@@ -17,11 +17,11 @@ from numpy.typing import NDArray
 
 from storage.errors import StoreError
 from storage.layout import JobStore
+from storage.options import Estimate
+from storage.tiles import Tile
 from worker.cancel import TileCancelled, cancel_points
-from worker.noise import Estimate
 from worker.problem import make_thresholds
 from worker.solve import estimate_job, solve_tile
-from worker.tiles import Tile
 
 
 @dataclass(frozen=True)
@@ -111,7 +111,7 @@ def compute_tile(
         return TileOutcome(tile_index, str(e), pixels=mask.size, seconds=time.perf_counter() - t0)
     solved = np.isfinite(res.normal[..., 0]) & mask
     stats = (int(mask.sum()), int(solved.sum()), int((res.optimal & solved).sum()))
-    store.write_tile(t, res, token, stats)
+    store.write_tile(t, res.outputs(), token, stats)
     store.log_run(tile_index, "done")
     return TileOutcome(
         tile_index,

@@ -1,0 +1,207 @@
+"""The shared vocabulary of solve options: solver and model names, defaults, limits and
+the one validator (:func:`check_options`), used by the library, the CLI, HTTP and the store.
+
+It sits at the bottom of the layers (numpy only) so that ``storage`` (which records the
+options) and ``worker`` (which computes with them) both import it; see ``tests/test_layers.py``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import StrEnum
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from storage.errors import InvalidInputError
+
+#: Default half-width of the box on ``n`` in units of the pixel's largest ``b_i``.
+#: 10 admits albedos up to ten times the brightest observation (``L.N >= 0.1``).
+DEFAULT_BOX_FACTOR = 10.0
+#: Pixel types of stored images (and of every loader and upload).
+DTYPES = ("uint8", "uint16", "float32")
+#: Per-pixel search budget of the exact solver before it falls back to the MILP.
+DEFAULT_MAX_NODES = 200_000
+#: Seconds the MILP may spend on one pixel (as reference, or as fallback).
+DEFAULT_MILP_TIME_LIMIT = 30.0
+
+
+class Solver(StrEnum):
+    """Solver names; :data:`worker.solvers.SOLVERS` maps each to its implementation."""
+
+    EXACT = "exact"  #: branch and bound, exact and fast (default)
+    MILP = "milp"  #: the paper's big-M MILP with HiGHS (reference)
+    L2 = "l2"  #: Woodham least squares on every image (baseline, not robust)
+
+
+class Model(StrEnum):
+    """Formulations: ``paper`` (Yu, Seo, Lee 2010, as published) and ``robust``."""
+
+    PAPER = "paper"
+    ROBUST = "robust"
+
+
+@dataclass(frozen=True)
+class ModelDefaults:
+    """What a model sets for the options a caller leaves unset (None)."""
+
+    dequantize: bool  # integer input: add half a step to non-zero values (floors)
+    response: float | str  # g, or "auto" (estimated per job)
+    eps_rel: float
+    shadow_per_eps: float  # shadow = this * eps
+    drop_bright: float
+    fallback: bool
+    noise_by_intensity: bool  # eps=auto: noise where the model fits best (worker.noise)
+
+
+#: The defaults of each model; ``robust`` was chosen by measurement (bench/accuracy.py).
+MODEL_DEFAULTS = {
+    Model.PAPER: ModelDefaults(False, 1.0, 0.0, 1.0, 0.0, False, False),
+    Model.ROBUST: ModelDefaults(True, "auto", 0.0, 1.0 / 3.0, 0.3, True, True),
+}
+#: Range of the response exponent g (given or estimated).
+RESPONSE_RANGE = (0.2, 5.0)
+#: Largest share of candidates ``drop_bright`` may remove.
+MAX_DROP_BRIGHT = 0.9
+
+
+#: Largest per-pixel node budget of the exact solver (about an hour of one core per pixel).
+MAX_NODES_LIMIT = 10**9
+#: Largest per-pixel MILP time limit, seconds.
+MAX_MILP_TIME_LIMIT = 3600.0
+#: Light sets whose condition number (largest / smallest singular value of the k x 3
+#: direction matrix) is above this are refused: a normal's error is amplified by about
+#: this factor, and coplanar or repeated lights (rank < 3) determine no normal at all.
+#: Real rigs sit far below (UW psm 6.4, DiLiGenT 3.2; lights in a 10-degree cone: ~8).
+MAX_LIGHT_CONDITION = 50.0
+#: Above this, loaders and the CLI warn that the light set is badly conditioned.
+WARN_LIGHT_CONDITION = 20.0
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """What a job resolves before its tiles run."""
+
+    eps: float  # tolerance, intensity units
+    response: float  # g of I = (L.n)^g
+    sigma: float  # robust noise sigma the eps came from (0 when eps was given)
+
+
+def _finite_number(name: str, value: object) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
+        raise InvalidInputError(f"{name} must be a number, got {value!r}")
+    v = float(value)
+    if not np.isfinite(v):
+        raise InvalidInputError(f"{name} must be finite, got {value!r}")
+    return v
+
+
+def check_options(
+    *,
+    eps: float | None,
+    shadow: float | None = None,
+    saturation: float | None = None,
+    box_factor: float = DEFAULT_BOX_FACTOR,
+    max_nodes: int | None = None,
+    milp_time_limit: float | None = None,
+    model: str | None = None,
+    eps_rel: float | None = None,
+    response: float | str | None = None,
+    drop_bright: float | None = None,
+) -> None:
+    """The one validator of solver options, used by the library, the CLI and HTTP.
+
+    ``eps=None`` means "not known yet" (``eps="auto"`` before estimation): checks that
+    need it run again when it is known (:func:`make_thresholds`). Raises
+    :class:`InvalidInputError` with what is wrong and the allowed range.
+    """
+    if eps is not None and not _finite_number("eps", eps) > 0:
+        raise InvalidInputError(f"eps must be a positive finite number or 'auto', got {eps!r}")
+    if shadow is not None and not _finite_number("shadow", shadow) >= 0:
+        raise InvalidInputError(f"shadow threshold must be finite and >= 0, got {shadow!r}")
+    if saturation is not None:
+        if not _finite_number("saturation", saturation) > 0:
+            raise InvalidInputError(f"saturation must be a positive finite number, got {saturation!r}")
+        low = shadow if shadow is not None else eps
+        if low is not None and not saturation > low:
+            which = "shadow" if shadow is not None else "eps (the default shadow threshold)"
+            raise InvalidInputError(
+                f"saturation ({saturation}) must be above {which} ({low}); otherwise every "
+                "observation is a shadow or saturated and nothing can be solved"
+            )
+    if not _finite_number("box_factor", box_factor) >= 1:
+        raise InvalidInputError(f"box_factor must be a finite number >= 1, got {box_factor!r}")
+    if max_nodes is not None:
+        if isinstance(max_nodes, bool) or not isinstance(max_nodes, (int, np.integer)):
+            raise InvalidInputError(f"max_nodes must be a whole number, got {max_nodes!r}")
+        if not 1 <= max_nodes <= MAX_NODES_LIMIT:
+            raise InvalidInputError(f"max_nodes must be between 1 and {MAX_NODES_LIMIT}, got {max_nodes}")
+    if model is not None and model not in tuple(Model):
+        raise InvalidInputError(f"unknown model {model!r}; choose one of {', '.join(Model)}")
+    if eps_rel is not None and not _finite_number("eps_rel", eps_rel) >= 0:
+        raise InvalidInputError(f"eps_rel must be a finite number >= 0, got {eps_rel!r}")
+    if response is not None and response != "auto":
+        lo_g, hi_g = RESPONSE_RANGE
+        if isinstance(response, str) or not lo_g <= _finite_number("response", response) <= hi_g:
+            raise InvalidInputError(
+                f"response must be 'auto' or a number between {lo_g:g} and {hi_g:g}, got {response!r}"
+            )
+    if drop_bright is not None and not 0 <= _finite_number("drop_bright", drop_bright) <= MAX_DROP_BRIGHT:
+        raise InvalidInputError(f"drop_bright must be between 0 and {MAX_DROP_BRIGHT:g}, got {drop_bright!r}")
+    if milp_time_limit is not None:
+        t = _finite_number("milp_time_limit", milp_time_limit)
+        if not 0 < t <= MAX_MILP_TIME_LIMIT:
+            raise InvalidInputError(
+                f"milp_time_limit must be above 0 and at most {MAX_MILP_TIME_LIMIT:g} s, "
+                f"got {milp_time_limit}"
+            )
+
+
+def light_singular_values(lights: ArrayLike) -> NDArray[np.float64]:
+    """Singular values of the ``(k, 3)`` light matrix, largest first."""
+    return np.linalg.svd(np.asarray(lights, dtype=np.float64), compute_uv=False)
+
+
+def light_condition(lights: ArrayLike) -> float:
+    """Condition number of the light matrix (inf when rank < 3)."""
+    s = light_singular_values(lights)
+    return float(s[0] / s[2]) if s.size == 3 and s[2] > 1e-12 * s[0] else float("inf")
+
+
+def check_lights(lights: ArrayLike, k: int | None = None) -> NDArray[np.float64]:
+    """Validate light directions: shape ``(k, 3)``, finite, unit length (1e-3), and able
+    to determine a normal (rank 3, condition number at most :data:`MAX_LIGHT_CONDITION`)."""
+    try:
+        arr = np.asarray(lights, dtype=np.float64)
+    except (ValueError, TypeError):
+        raise InvalidInputError("lights must be k rows of 3 numbers each (x, y, z)") from None
+    if arr.ndim != 2 or arr.shape[1] != 3:
+        raise InvalidInputError(f"lights must be k rows of 3 numbers (x, y, z), got shape {arr.shape}")
+    if k is not None and arr.shape[0] != k:
+        raise InvalidInputError(f"{arr.shape[0]} light directions for {k} images; give one per image")
+    if not np.all(np.isfinite(arr)):
+        raise InvalidInputError("lights contain NaN or infinite values")
+    norms = np.linalg.norm(arr, axis=1)
+    if np.any(np.abs(norms - 1.0) > 1e-3):
+        bad = int(np.argmax(np.abs(norms - 1.0)))
+        raise InvalidInputError(
+            f"light {bad} has length {norms[bad]:.4f}; light directions must be unit vectors "
+            "(normalise them, and put the light's strength in the intensities instead)"
+        )
+    # normalise once: dividing unit vectors again can move them by an ulp, and the stored
+    # lights must digest the same however often they were validated
+    unit = arr if np.all(np.abs(norms - 1.0) <= 1e-12) else arr / norms[:, None]
+    cond = light_condition(unit) if unit.shape[0] >= 3 else float("inf")
+    if not cond <= MAX_LIGHT_CONDITION:
+        sv = ", ".join(f"{v:.3g}" for v in light_singular_values(unit))
+        why = (
+            "they are coplanar or repeated (rank < 3)"
+            if not np.isfinite(cond)
+            else f"their condition number is {cond:.3g} (the limit is {MAX_LIGHT_CONDITION:g})"
+        )
+        raise InvalidInputError(
+            f"the {unit.shape[0]} light directions cannot determine a surface normal: {why}; "
+            f"singular values {sv}. Lights must span 3-D: use lights from at least 3 directions "
+            "that are not in one plane through the object, spread around the camera axis"
+        )
+    return unit
