@@ -178,7 +178,7 @@ def kernel_row(px: Pixels, reps: int, milp_sample: int, milp_cap: float) -> dict
     pick = hard[np.linspace(0, hard.size - 1, min(milp_sample, hard.size)).astype(int)] if hard.size else hard
     milp = "-"
     if pick.size:
-        _, _, mc, mcert, _ = MilpSolver(L, milp_cap).solve_pixels(I[pick], V[pick], px.eps, px.box_factor)
+        _, _, mc, mcert, _ = MilpSolver(L, milp_cap).solve_rows(I[pick], V[pick], px.eps, px.box_factor)
         milp = f"{int((mc == c_new[pick]).sum())}/{pick.size}"
         low = int((mc < c_new[pick]).sum())
         if low:

@@ -22,8 +22,8 @@ from service.models import ErrorBody, JobStatus
 from service.statuses import error_for_status
 from storage.datasets import Dataset, load_folder
 from storage.errors import ConflictError, MaxfsError
+from storage.records import FINAL_STATES
 
-FINAL_STATES = ("done", "failed", "cancelled")
 #: Response header that marks partial results (the server's :data:`service.app.PARTIAL_HEADER`).
 PARTIAL_HEADER = "x-maxfs-partial"
 #: Bytes per piece of a streamed upload.
@@ -189,7 +189,7 @@ class MaxfsClient:
         """Create a job from a dataset folder (or an opened :class:`Dataset`, e.g. a selection of its
         images), stream its images one by one, start it.
 
-        Only one decoded image is in memory at a time (NPY stacks are memory-mapped).
+        Only one decoded image is in memory at a time (NPY stacks are read one image at a time).
 
         **Resumable**: the job is labelled with a digest of the folder's files (paths, sizes,
         times), the selection and the parameters. If this user already has an unfinished job with

@@ -12,7 +12,7 @@ import sys
 import time
 from typing import Any
 
-FINAL = ("done", "failed", "cancelled")
+from storage.records import FINAL_STATES
 
 
 def _hms(seconds: float | None) -> str:
@@ -32,7 +32,7 @@ def format_status(st: dict[str, Any]) -> str:
         parts.append(f"{rate / 1e3:.1f}k px/s")
     if st["state"] in ("queued", "running"):
         parts.append(f"ETA {_hms(p.get('eta_seconds'))}")
-    if p.get("solved_share") is not None and st["state"] in FINAL:
+    if p.get("solved_share") is not None and st["state"] in FINAL_STATES:
         parts.append(f"solved {p['solved_share']:.1%}, certified {p.get('certified_share') or 0:.1%}")
     if st.get("eps") is not None:
         parts.append(f"eps {st['eps']:.4g}")
@@ -72,12 +72,12 @@ class Progress:
         else:
             decile = int(10 * done / total) if total else 0
             now = time.monotonic()
-            if decile != self.last_decile or now - self.last_line >= self.every or state in FINAL:
+            if decile != self.last_decile or now - self.last_line >= self.every or state in FINAL_STATES:
                 frac = done / total if total else 0.0
-                eta_s = f", ETA {_hms(eta)}" if eta is not None and state not in FINAL else ""
+                eta_s = f", ETA {_hms(eta)}" if eta is not None and state not in FINAL_STATES else ""
                 print(f"{done}/{total} tiles ({frac:.0%}), {info}{eta_s}", file=self.stream, flush=True)
                 self.last_decile, self.last_line = decile, now
-        if state in FINAL:
+        if state in FINAL_STATES:
             self.close()
 
     def close(self) -> None:

@@ -23,7 +23,7 @@ from service.progress import ProgressFn, RunCounter, count_finished, resolve_eps
 from storage.layout import JobStore
 from storage.records import JobRecord, JobState, load_record, save_record
 from storage.tiles import Tile
-from worker.task import TileOutcome, compute_tile, estimate_eps_of
+from worker.task import TileOutcome, TileStatus, compute_tile, estimate_eps_of
 
 
 def tile_order(store: JobStore, todo: list[Tile]) -> list[Tile]:
@@ -90,7 +90,7 @@ def run_in_process(
                         out: TileOutcome = fut.result()
                     except Exception as e:
                         raise RuntimeError(f"tile {t.index} failed: {type(e).__name__}: {e}") from e
-                    if out.status == "done":
+                    if out.status is TileStatus.DONE:
                         counter.add(out)
                 if time.monotonic() - last >= progress_interval:
                     save()

@@ -25,7 +25,7 @@ from service.progress import ProgressFn, RunCounter, count_finished, resolve_eps
 from storage.errors import JobCancelledError
 from storage.layout import JobStore
 from storage.records import JobRecord, JobState, load_record, save_record
-from worker.task import TileOutcome, estimate_store_eps, run_tile, warm_up
+from worker.task import TileOutcome, TileStatus, estimate_store_eps, run_tile, warm_up
 
 log = logging.getLogger("maxfs.orchestrator")
 #: Futures of a job waited on at once (all are submitted; see run_job).
@@ -149,16 +149,16 @@ async def run_job(
                 if fair is not None and held:
                     fair.release(user)
                     held -= 1
-            if out.status == "overtime":
+            if out.status is TileStatus.OVERTIME:
                 raise RuntimeError(
                     f"tile {out.index} was stopped after {tile_time_limit:g} s (MAXFS_TILE_TIME_LIMIT); "
                     "finished tiles are kept: use a smaller tile, or lower max_nodes or "
                     "milp_time_limit, then start the job again"
                 )
-            if out.status == "cancelled":
+            if out.status is TileStatus.CANCELLED:
                 cancelled = True
                 continue
-            if out.status == "done":
+            if out.status is TileStatus.DONE:
                 counter.add(out)
             now = time.monotonic()
             if now - last >= progress_interval:

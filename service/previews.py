@@ -16,7 +16,7 @@ def normal_rgb(normal: NDArray[np.floating]) -> NDArray[np.uint8]:
     return np.clip(np.round(255 * rgb), 0, 255).astype(np.uint8)
 
 
-def scaled_grey(values: NDArray[np.floating], top: float | None = None) -> NDArray[np.uint8]:
+def scale_to_uint8(values: NDArray[np.floating], top: float | None = None) -> NDArray[np.uint8]:
     """Linear 0..top to 0..255 (``top`` defaults to the 99.5th percentile of positive values)."""
     v = np.nan_to_num(np.asarray(values, dtype=np.float64))
     if top is None:
@@ -45,10 +45,10 @@ def render(name: str, arrays: dict[str, NDArray], k: int) -> NDArray[np.uint8]:
         return normal_rgb(arrays["normal"])
     if name == "albedo":
         if arrays.get("albedo_rgb") is not None:
-            return scaled_grey(arrays["albedo_rgb"])
-        return scaled_grey(arrays["albedo"])
+            return scale_to_uint8(arrays["albedo_rgb"])
+        return scale_to_uint8(arrays["albedo"])
     if name == "inlier_count":
-        return scaled_grey(arrays["inlier_count"], top=float(k))
+        return scale_to_uint8(arrays["inlier_count"], top=float(k))
     if name == "depth":
         from worker.depth import relief_rgb  # the relief `maxfs run` writes as previews/depth.png
 

@@ -28,7 +28,7 @@ from numpy.typing import NDArray
 
 from storage.errors import DatasetError, InvalidInputError
 from storage.imageio import read_image as _decode_file
-from storage.options import check_lights
+from storage.options import DTYPES, check_lights
 
 
 @dataclass(frozen=True)
@@ -225,8 +225,8 @@ def _npy(folder: Path) -> Dataset:
     stack = _NpyImages(folder / "images.npy")
     if stack.ndim not in (3, 4) or (stack.ndim == 4 and stack.shape[3] != 3):
         raise DatasetError(f"{folder}/images.npy must be (k, H, W) or (k, H, W, 3), got {stack.shape}")
-    if str(stack.dtype) not in ("uint8", "uint16", "float32"):
-        raise DatasetError(f"{folder}/images.npy has dtype {stack.dtype}; use uint8, uint16 or float32")
+    if str(stack.dtype) not in DTYPES:
+        raise DatasetError(f"{folder}/images.npy has dtype {stack.dtype}; use one of {', '.join(DTYPES)}")
     k = stack.shape[0]
     if (folder / "lights.npy").exists():
         raw = np.load(folder / "lights.npy").astype(np.float64)

@@ -24,6 +24,7 @@ from numpy.typing import NDArray
 
 from storage.datasets import Dataset, _existing, _lights, _mask_from, _probe, _read_matrix, read_image
 from storage.errors import DatasetError, InvalidInputError
+from storage.options import DTYPES, WARN_LIGHT_CONDITION, check_lights, light_condition, light_singular_values
 
 IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".tga", ".bmp", ".jpg", ".jpeg")
 LIGHT_FILES = ("light_directions.txt", "lights.txt", "lights.npy")
@@ -95,7 +96,7 @@ def tiff_stack(folder: Path, path: Path) -> Dataset:
             arr = t.pages[i].asarray()
         if arr.ndim == 3 and arr.shape[2] == 4:
             arr = arr[..., :3]
-        if arr.dtype not in (np.uint8, np.uint16, np.float32):
+        if str(arr.dtype) not in DTYPES:
             if np.issubdtype(arr.dtype, np.floating):
                 return arr.astype(np.float32)
             raise DatasetError(f"{path} page {i}: pixel type {arr.dtype}; use 8/16-bit or float32")
@@ -179,8 +180,6 @@ def parse_selection(text: str, k: int) -> list[int]:
 
 def select_images(ds: Dataset, indices: list[int]) -> Dataset:
     """The dataset restricted to ``indices`` (0-based), in that order."""
-    from storage.options import check_lights
-
     idx = list(indices)
     try:
         lights = check_lights(ds.lights[idx], len(idx))
@@ -206,7 +205,6 @@ def select_images(ds: Dataset, indices: list[int]) -> Dataset:
 
 def conditioning_warning(lights: NDArray[np.floating]) -> str | None:
     """A warning when the lights' condition number is above ``WARN_LIGHT_CONDITION`` (yet accepted)."""
-    from storage.options import WARN_LIGHT_CONDITION, light_condition, light_singular_values
 
     cond = light_condition(lights)
     if cond <= WARN_LIGHT_CONDITION:

@@ -18,6 +18,7 @@ from numpy.typing import NDArray
 from PIL import Image
 
 from storage.errors import InvalidInputError, PayloadTooLargeError
+from storage.options import DTYPES
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 TIFF_MAGICS = (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+")
@@ -33,7 +34,7 @@ def _normalise(arr: NDArray, what: str) -> NDArray:
         arr = arr[..., 0]
     if arr.ndim not in (2, 3) or (arr.ndim == 3 and arr.shape[2] != 3):
         raise InvalidInputError(f"{what}: expected a grey or RGB image, got array shape {arr.shape}")
-    if arr.dtype not in (np.uint8, np.uint16, np.float32):
+    if str(arr.dtype) not in DTYPES:
         if np.issubdtype(arr.dtype, np.floating):
             arr = arr.astype(np.float32)
         else:

@@ -57,6 +57,9 @@ class JobState(StrEnum):
             raise ConflictError(f"{EVENT_WORDS[event]} is not possible: the job is {self.value}") from None
 
 
+#: States in which nothing runs and nothing will until the user starts the job again.
+FINAL_STATES = frozenset(s for s in JobState if s.final)
+
 _S = JobState
 #: Every change of a job's state: event -> {state before: state after}. A move that is not
 #: here is refused (409). The server applies them under the job's lock (service.jobs), so
@@ -121,6 +124,13 @@ class JobRecord:
         """Share of the finished masked pixels with a normal whose optimum was proved
         (never for ``l2``, which proves nothing)."""
         return self.certified_pixels / self.pixels_done if self.pixels_done else None
+
+    @property
+    def eta_seconds(self) -> float | None:
+        """Seconds left at this run's pixel rate (active jobs only)."""
+        if not (self.pixel_rate and self.state.active):
+            return None
+        return max(self.pixels_total - self.pixels_done, 0) / self.pixel_rate
 
     def warnings(self) -> list[str]:
         """What a user must hear about a result that is technically complete."""

@@ -190,7 +190,7 @@ def test_exact_matches_milp_on_the_realistic_scene(k: int) -> None:
     np.testing.assert_array_equal(inl, _recount(L, lo, hi, V, pt))
     pick = np.flatnonzero(cnt < V.sum(axis=1))[:6]  # pixels with outliers
     assert pick.size == 6
-    _, _, mcnt, mcert, _ = MilpSolver(L, time_limit=60).solve_pixels(I[pick], V[pick], eps, BOX)
+    _, _, mcnt, mcert, _ = MilpSolver(L, time_limit=60).solve_rows(I[pick], V[pick], eps, BOX)
     assert mcert.all()
     np.testing.assert_array_equal(cnt[pick], mcnt)
 

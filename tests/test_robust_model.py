@@ -50,7 +50,7 @@ def test_exact_matches_milp_for_every_tolerance_model(k, response, eps_rel, drop
     lo, hi = slabs(I, th)
     S = shading(I, th)
     pt, inl, cnt, _, cert = exact_pixels(S, lo, hi, V, L, th.box_factor, 10**7)
-    _, _, mcnt, mcert, stats = MilpSolver(L, time_limit=60).solve_pixels(S, V, (lo, hi), th.box_factor)
+    _, _, mcnt, mcert, stats = MilpSolver(L, time_limit=60).solve_rows(S, V, (lo, hi), th.box_factor)
     assert cert.all() and mcert.all()
     np.testing.assert_array_equal(stats.claimed, mcnt)
     np.testing.assert_array_equal(cnt, mcnt)

@@ -99,7 +99,7 @@ def test_exhausted_budget_falls_back_to_milp() -> None:
     I = sc.images[:, sc.mask].T[::4]
     V = usable(I.T, th).T
     forced = solve_pixels(I, sc.lights, th, "exact", max_nodes=1)
-    ref = MilpSolver(sc.lights).solve_pixels(I, V, 1.0, th.box_factor)
+    ref = MilpSolver(sc.lights).solve_rows(I, V, 1.0, th.box_factor)
     rows = V.sum(axis=1) >= 3
     assert (forced.nodes[rows] > 1).sum() > 10  # the budget really was exhausted
     assert forced.optimal.all()

@@ -54,7 +54,7 @@ def _assert_feasible(I, V, L, eps, point, inl, tol_rel):
 def test_exact_matches_milp_optimum(case: Case) -> None:
     I, V, L = _pixels(case)
     pt, inl, cnt, _, cert = exact_pixels(I, *slabs(I, case.eps), V, L, 10.0, 10**7)
-    mpt, minl, mcnt, mcert, stats = MilpSolver(L, time_limit=60).solve_pixels(I, V, case.eps, 10.0)
+    mpt, minl, mcnt, mcert, stats = MilpSolver(L, time_limit=60).solve_rows(I, V, case.eps, 10.0)
     assert cert.all() and mcert.all(), "both solvers must prove optimality here"
     np.testing.assert_array_equal(stats.claimed, mcnt)  # HiGHS's claimed inliers re-check
     np.testing.assert_array_equal(cnt, mcnt)
@@ -83,7 +83,7 @@ def test_random_arrangements_match_milp() -> None:
         keep = V.sum(axis=1) >= 3
         I, V = I[keep], V[keep]
         pt, inl, cnt, _, cert = exact_pixels(I, *slabs(I, eps), V, L, 10.0, 10**7)
-        _, _, mcnt, mcert, _ = MilpSolver(L, time_limit=60).solve_pixels(I, V, eps, 10.0)
+        _, _, mcnt, mcert, _ = MilpSolver(L, time_limit=60).solve_rows(I, V, eps, 10.0)
         assert cert.all() and mcert.all()
         np.testing.assert_array_equal(cnt, mcnt, err_msg=f"trial {trial}")
         _assert_feasible(I, V, L, eps, pt, inl, REL_TOL)

@@ -134,7 +134,7 @@ class MilpSolver:
         h.clearSolver()
         return sol[:3].copy(), claimed, bool(finished)
 
-    def solve_pixels(
+    def solve_rows(
         self, I: NDArray[np.float64], valid: NDArray[np.bool_], bounds: Bounds, box_factor: float
     ) -> tuple[NDArray[np.float64], NDArray[np.bool_], NDArray[np.int32], NDArray[np.bool_], MilpStats]:
         """Solve ``(P, k)`` pixels: (point, inliers, count, certified, stats).

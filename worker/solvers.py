@@ -90,7 +90,7 @@ def _exact_rows(S, lo, hi, valid, L, b: Batch):
 
 
 def _milp_rows(S, lo, hi, valid, L, b: Batch):
-    pt, il, _, cert, _ = MilpSolver(L, b.milp_time_limit).solve_pixels(S, valid, (lo, hi), b.th.box_factor)
+    pt, il, _, cert, _ = MilpSolver(L, b.milp_time_limit).solve_rows(S, valid, (lo, hi), b.th.box_factor)
     return pt, il, np.zeros(len(S), dtype=np.int64), cert
 
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from enum import StrEnum
 from pathlib import Path
 
 import numpy as np
@@ -24,18 +25,26 @@ from worker.problem import make_thresholds
 from worker.solve import estimate_job, solve_tile
 
 
+class TileStatus(StrEnum):
+    """How a tile task ended."""
+
+    DONE = "done"  #: computed and written, done marker last
+    SKIPPED = "skipped"  #: already done with these parameters
+    CANCELLED = "cancelled"  #: the job was cancelled; nothing written
+    OVERTIME = "overtime"  #: past the per-tile time limit; nothing written
+
+
 @dataclass(frozen=True)
 class TileOutcome:
     """What a tile task reports back to the orchestrator."""
 
     index: int
-    status: str  # "done" | "skipped" (already done) | "cancelled" | "overtime" (past the time limit)
+    status: TileStatus
     pixels: int = 0  # pixels in the tile
     active: int = 0  # pixels inside the mask
     solved: int = 0  # pixels that got a normal
     certified: int = 0  # active pixels whose optimum is proved
     nodes: int = 0
-    seconds: float = 0.0
 
 
 def run_tile(job_dir: str, tile_index: int, params_hash: str, time_limit: float | None = None) -> TileOutcome:
@@ -66,15 +75,14 @@ def compute_tile(
     t = store.tiles()[tile_index]
     token = params.token()
     if store.tile_done(t):
-        return TileOutcome(tile_index, "skipped")
+        return TileOutcome(tile_index, TileStatus.SKIPPED)
     if store.cancel_requested:
-        return TileOutcome(tile_index, "cancelled")
-    t0 = time.perf_counter()
+        return TileOutcome(tile_index, TileStatus.CANCELLED)
     mask = store.read_tile_mask(t)
     if not mask.any():  # nothing of the object here: fill values, no image read, no solve
         store.write_empty_tile(t, token)
         store.log_run(tile_index, "done")
-        return TileOutcome(tile_index, "done", pixels=mask.size, seconds=time.perf_counter() - t0)
+        return TileOutcome(tile_index, TileStatus.DONE, pixels=mask.size)
     raw = (read_images or store.read_tile_images)(t)
     spec = store.spec
     th = make_thresholds(
@@ -89,9 +97,9 @@ def compute_tile(
 
     def stop_reason() -> str | None:
         if store.cancel_requested:
-            return "cancelled"
+            return TileStatus.CANCELLED.value
         if deadline is not None and time.monotonic() > deadline:
-            return "overtime"
+            return TileStatus.OVERTIME.value
         return None
 
     try:
@@ -108,20 +116,19 @@ def compute_tile(
             )
     except TileCancelled as e:
         store.log_run(tile_index, str(e))
-        return TileOutcome(tile_index, str(e), pixels=mask.size, seconds=time.perf_counter() - t0)
+        return TileOutcome(tile_index, TileStatus(str(e)), pixels=mask.size)
     solved = np.isfinite(res.normal[..., 0]) & mask
     stats = (int(mask.sum()), int(solved.sum()), int((res.optimal & solved).sum()))
     store.write_tile(t, res.outputs(), token, stats)
     store.log_run(tile_index, "done")
     return TileOutcome(
         tile_index,
-        "done",
+        TileStatus.DONE,
         pixels=mask.size,
         active=stats[0],
         solved=stats[1],
         certified=stats[2],
         nodes=res.nodes,
-        seconds=time.perf_counter() - t0,
     )
 
 
