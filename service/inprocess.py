@@ -26,13 +26,6 @@ from storage.tiles import Tile
 from worker.task import TileOutcome, TileStatus, compute_tile, estimate_eps_of
 
 
-def tile_order(store: JobStore, todo: list[Tile]) -> list[Tile]:
-    """``todo`` by masked pixels, most first (ties in raster order)."""
-    mask = store.read_mask()
-    count = {t.index: int(mask[t.y0 : t.y1, t.x0 : t.x1].sum()) for t in todo}
-    return sorted(todo, key=lambda t: (-count[t.index], t.index))
-
-
 def run_in_process(
     job_dir: Path,
     *,
@@ -76,7 +69,7 @@ def run_in_process(
         rec.state, rec.started_at, rec.pixel_rate = JobState.RUNNING, time.time(), None
         save()
         done = store.done_grid().ravel()
-        todo = tile_order(store, [t for t in store.tiles() if not done[t.index]])
+        todo = store.by_masked_pixels(t for t in store.tiles() if not done[t.index])
         digest, counter, last = params.digest(), RunCounter(rec), 0.0
         t0 = time.perf_counter()
         pool = ThreadPoolExecutor(max(1, threads), thread_name_prefix="maxfs-tile")

@@ -35,7 +35,7 @@ def ingest(
 ) -> tuple[JobStore, str]:
     """Create or reopen the output store for ``ds``; copy images not yet stored (into a
     new store only if ``copy_images``: :func:`run_folder` may keep them in memory and
-    write them in the background instead).
+    store only their digests instead).
 
     A store that already holds *other* inputs (images, mask, lights or intensities,
     compared by content digest) is refused unless ``overwrite``, which removes it and
@@ -187,8 +187,8 @@ def run_folder(
 
     On the ``local`` cluster (no ``scheduler``, ``cluster`` unset or "local") and a stack of at
     most ``in_process_bytes``, tiles run on ``workers`` threads in this process
-    (:mod:`service.inprocess`) with the images held in memory and written to the store in the
-    background; otherwise on a Dask cluster (:mod:`service.cluster`): the embedded one, SLURM
+    (:mod:`service.inprocess`) with the images held in memory and only their digests stored;
+    otherwise on a Dask cluster (:mod:`service.cluster`): the embedded one, SLURM
     worker jobs, or ``scheduler``. A finished job is not run again: it costs a look at
     its done markers. Results are bit-identical either way.
     """

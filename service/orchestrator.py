@@ -97,7 +97,10 @@ async def run_job(
         save()
         digest, nonce = params.digest(), uuid.uuid4().hex[:8]
         index_of: dict[str, int] = {}
-        todo = [int(i) for i in (~done).nonzero()[0]]
+        # largest masked-pixel count first: work, not tile count, is what the workers share
+        grid = store.tiles()
+        unfinished = [grid[int(i)] for i in (~done).nonzero()[0]]
+        todo = [t.index for t in await asyncio.to_thread(store.by_masked_pixels, unfinished)]
         # in batches (one message each), yielding to the event loop between them; each batch's
         # priority is minus its rank in the user's backlog, so users share the workers
         for b in range(0, len(todo), FAIR_BATCH):

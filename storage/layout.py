@@ -578,6 +578,14 @@ class JobStore:
             certified=int(stats[:, 2].sum()),
         )
 
+    def by_masked_pixels(self, todo: Iterable[Tile]) -> list[Tile]:
+        """``todo`` by masked pixels, most first (ties in raster order): the work a tile costs,
+        so the largest tiles start first and the last ones to finish are small."""
+        mask = self.read_mask()
+        todo = list(todo)
+        count = {t.index: int(mask[t.y0 : t.y1, t.x0 : t.x1].sum()) for t in todo}
+        return sorted(todo, key=lambda t: (-count[t.index], t.index))
+
     def read_output(self, name: str) -> NDArray[Any]:
         if name not in OUTPUTS_BY_NAME or name not in self.group:
             raise NotFoundError(f"no output array {name!r}; available: {', '.join(self.output_names())}")
