@@ -166,7 +166,8 @@ def cmd_run(args: argparse.Namespace) -> int:
         ds = _dataset(args)
     spec = JobSpec(ds.k, ds.height, ds.width, ds.channels, ds.dtype, ds.lights, ds.intensities).validate()
     kw = _params(args)
-    params = JobParams.build(**kw | {"tile": spec.resolve_tile(kw["tile"], settings.task_memory)})
+    tile = spec.resolve_tile(kw["tile"], settings.task_memory, kw.get("solver") or "exact")
+    params = JobParams.build(**kw | {"tile": tile})
     print(f"{ds.name}: {ds.k} images of {ds.height} x {ds.width} ({ds.layout}, {ds.dtype})", file=sys.stderr)
     scheduler = args.scheduler if args.scheduler is not None else settings.scheduler
     store, rec = run_folder(

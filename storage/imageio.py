@@ -111,7 +111,9 @@ def probe_bytes(data: bytes, what: str = "image") -> ImageHeader:
             c = _PNG_CHANNELS[colour] if colour != 3 else 3
             dtype = np.dtype(np.uint16 if depth == 16 else np.uint8)
             raw = (h, w) if c == 1 else (h, w, c)
-            return ImageHeader("PNG", _normal_shape(raw), dtype, 1, h * w * 4 * dtype.itemsize)
+            # what the decoder allocates: the channels it returns (palette: RGBA at most)
+            n = h * w * _PNG_CHANNELS[colour] * dtype.itemsize
+            return ImageHeader("PNG", _normal_shape(raw), dtype, 1, n)
         if data[:4] in TIFF_MAGICS:
             with tifffile.TiffFile(io.BytesIO(data)) as tif:
                 pages = len(tif.pages)
@@ -126,7 +128,7 @@ def probe_bytes(data: bytes, what: str = "image") -> ImageHeader:
         raw = {"L": (h, w), "LA": (h, w, 2), "RGBA": (h, w, 4)}.get(mode, (h, w, 3))
         if dtype != np.uint8:
             raw = (h, w)
-        return ImageHeader(fmt, _normal_shape(raw), dtype, frames, h * w * 4 * 4)
+        return ImageHeader(fmt, _normal_shape(raw), dtype, frames, h * w * _pil_bytes_per_pixel(mode))
     except InvalidInputError:
         raise
     except Exception as e:  # readers raise many types for corrupt headers
@@ -176,6 +178,18 @@ def decode_checked(
             f"{what}: decoded to {arr.shape} {arr.dtype}, but its header says {head.shape} {head.dtype}"
         )
     return arr
+
+
+def _pil_bytes_per_pixel(mode: str) -> int:
+    """Bytes per pixel Pillow holds decoding an image of ``mode``, with the RGB copy
+    :func:`_pil_array` makes of modes it does not return as they are."""
+    try:
+        bands = Image.getmodebands(mode)
+    except (KeyError, ValueError):
+        return 16  # an unknown mode: assume the worst Pillow has (4 bands of 32 bits)
+    per_band = {"I;16": 2, "I;16B": 2, "I;16L": 2, "I": 4, "F": 4}.get(mode, 1)
+    convert = 0 if mode in ("L", "RGB", "RGBA", "LA", *_PIL_DTYPES) else 3
+    return bands * per_band + convert
 
 
 def _pil_array(im: Image.Image) -> NDArray:

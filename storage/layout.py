@@ -197,14 +197,15 @@ class JobSpec:
         """Upper bound of the job's size on disk (images and outputs, uncompressed)."""
         return self.k * self.image_nbytes + self.pixels * output_bytes_per_pixel(self.k, self.channels)
 
-    def auto_tile(self, memory: int) -> int:
-        """Tile edge for this stack and a per-task memory budget (see :func:`storage.tiles.auto_tile`)."""
-        return auto_tile(self.k, self.channels, self.itemsize, memory, self.pixels)
+    def auto_tile(self, memory: int, solver: str = "exact") -> int:
+        """Tile edge for this stack, a per-task memory budget and a solver (see
+        :func:`storage.tiles.auto_tile`)."""
+        return auto_tile(self.k, self.channels, self.itemsize, memory, self.pixels, solver)
 
-    def resolve_tile(self, tile: int | str, memory: int) -> int:
+    def resolve_tile(self, tile: int | str, memory: int, solver: str = "exact") -> int:
         """``"auto"`` to :meth:`auto_tile`; a tile edge given by hand must fit ``memory``."""
         if tile == "auto":
-            return self.auto_tile(memory)
+            return self.auto_tile(memory, solver)
         self.check_tile(int(tile), memory)
         return int(tile)
 
