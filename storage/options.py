@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from enum import StrEnum
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -122,11 +123,14 @@ def check_options(
     if saturation is not None:
         if not _finite_number("saturation", saturation) > 0:
             raise InvalidInputError(f"saturation must be a positive finite number, got {saturation!r}")
-        low = shadow if shadow is not None else eps
+        # the shadow threshold in force: given, or the model's default (paper: eps, robust: eps/3)
+        per = MODEL_DEFAULTS[Model(model) if model in tuple(Model) else Model.PAPER].shadow_per_eps
+        low = shadow if shadow is not None else (None if eps is None else per * eps)
         if low is not None and not saturation > low:
-            which = "shadow" if shadow is not None else "eps (the default shadow threshold)"
+            default = "eps" if per == 1 else f"eps/{1 / per:g}"
+            which = "shadow" if shadow is not None else f"the default shadow threshold, {default},"
             raise InvalidInputError(
-                f"saturation ({saturation}) must be above {which} ({low}); otherwise every "
+                f"saturation ({saturation}) must be above {which} ({low:g}); otherwise every "
                 "observation is a shadow or saturated and nothing can be solved"
             )
     if not _finite_number("box_factor", box_factor) >= 1:
@@ -205,3 +209,65 @@ def check_lights(lights: ArrayLike, k: int | None = None) -> NDArray[np.float64]
             "that are not in one plane through the object, spread around the camera axis"
         )
     return unit
+
+
+@dataclass(frozen=True)
+class Option:
+    """One solve option as users give it: the CLI's flags (``service.cli``) and the HTTP
+    ``POST /jobs`` fields (``service.models.CreateJob``) are generated from these rows, and
+    :meth:`storage.params.JobParams.build` takes them by name and validates them
+    (:func:`check_options`). Adding an option is a row here, a field of ``JobParams``, a
+    check in :func:`check_options` and its use in ``worker``.
+
+    ``kind`` is ``"float"``, ``"int"``, ``"bool"``, ``"choice"`` (one of ``choices``) or
+    ``"float|auto"`` / ``"int|auto"`` (a number or the word ``auto``). ``default`` is what an
+    unset option means to a user (None: ``JobParams.build``'s default, for the model's options
+    the model's value, :data:`MODEL_DEFAULTS`).
+    """
+
+    name: str
+    kind: str
+    help: str
+    default: Any = None
+    choices: tuple[str, ...] = ()
+
+    @property
+    def flag(self) -> str:
+        return "--" + self.name.replace("_", "-")
+
+
+#: Every solve option, in the order the CLI's help and the OpenAPI schema list them.
+SOLVE_OPTIONS: tuple[Option, ...] = (
+    Option("eps", "float|auto", "Lambertian tolerance, or auto (estimated from the data)", "auto"),
+    Option(
+        "solver",
+        "choice",
+        "exact (default), milp (the paper's MILP) or l2 (least squares)",
+        "exact",
+        tuple(Solver),
+    ),
+    Option("tile", "int|auto", "tile edge in pixels (8-4096), or auto: from k and the task memory", "auto"),
+    Option("shadow", "float", "intensities <= this are shadows (default: the model's, eps or eps/3)"),
+    Option("saturation", "float", "float input only: values >= this are saturated"),
+    Option(
+        "box_factor", "float", f"box on n as a multiple of the brightest value (>= 1; {DEFAULT_BOX_FACTOR:g})"
+    ),
+    Option("max_nodes", "int", f"exact solver's node budget per pixel (1 to 1e9; {DEFAULT_MAX_NODES})"),
+    Option("milp_time_limit", "float", f"MILP seconds per pixel (0 to 3600; {DEFAULT_MILP_TIME_LIMIT:g})"),
+    Option(
+        "model",
+        "choice",
+        "robust (default: dequantised input, response and eps estimated, brightest 30% of each pixel's "
+        "images rejected, a fallback fit) or paper (Yu, Seo, Lee 2010 as published)",
+        Model.ROBUST.value,
+        tuple(Model),
+    ),
+    Option("response", "float|auto", "g of I = (L.n)^g, or auto (robust: auto; paper: 1)"),
+    Option("eps_rel", "float", "tolerance eps + eps_rel * I (default 0)"),
+    Option(
+        "drop_bright", "float", "share of each pixel's brightest candidates that are outliers (robust: 0.3)"
+    ),
+    Option("dequantize", "bool", "integer input: read v > 0 as v + 0.5 (robust: true)"),
+    Option("fallback", "bool", "least squares where Max-FS gives no normal (robust: true)"),
+)
+OPTIONS_BY_NAME: dict[str, Option] = {o.name: o for o in SOLVE_OPTIONS}

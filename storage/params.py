@@ -62,9 +62,9 @@ class JobParams:
         tile: int = DEFAULT_TILE,
         shadow: float | None = None,
         saturation: float | None = None,
-        box_factor: float = DEFAULT_BOX_FACTOR,
-        max_nodes: int = DEFAULT_MAX_NODES,
-        milp_time_limit: float = DEFAULT_MILP_TIME_LIMIT,
+        box_factor: float | None = None,
+        max_nodes: int | None = None,
+        milp_time_limit: float | None = None,
         model: str = Model.PAPER.value,
         response: float | str | None = None,
         eps_rel: float | None = None,
@@ -72,8 +72,12 @@ class JobParams:
         dequantize: bool | None = None,
         fallback: bool | None = None,
     ) -> JobParams:
-        """Validate user-facing parameters (:func:`worker.problem.check_options`, the one
-        validator the library, the CLI and HTTP share) and build them."""
+        """Validate user-facing parameters (:func:`storage.options.check_options`, the one
+        validator the library, the CLI and HTTP share) and build them. The keywords are the
+        names of :data:`storage.options.SOLVE_OPTIONS`; None means the default."""
+        box_factor = DEFAULT_BOX_FACTOR if box_factor is None else box_factor
+        max_nodes = DEFAULT_MAX_NODES if max_nodes is None else max_nodes
+        milp_time_limit = DEFAULT_MILP_TIME_LIMIT if milp_time_limit is None else milp_time_limit
         try:
             solver = Solver(solver).value
         except ValueError:
