@@ -448,19 +448,19 @@ class JobRoutes:
         names = store.output_names()
         if name not in names:  # before the store is asked: ".", "..", NUL are just unknown names
             raise NotFoundError(f"no output array {name!r}; available: {', '.join(names)}")
-        arr = store.group[name]
-        if arr.nbytes > self.s.max_result_bytes:
+        meta = store.array_meta(name)
+        if meta.nbytes > self.s.max_result_bytes:
             raise PayloadTooLargeError(
-                f"{name} is {arr.nbytes / 2**20:.0f} MiB, more than one NPY answer may be "
+                f"{name} is {meta.nbytes / 2**20:.0f} MiB, more than one NPY answer may be "
                 f"({self.s.max_result_bytes / 2**20:.0f} MiB); fetch results.zip (`maxfs fetch`) instead"
             )
         # streamed from the store in bands (service.streams): a slow reader holds one band
         return StreamingResponse(
-            npy_pieces(arr),
+            npy_pieces(store, name),
             media_type="application/octet-stream",
             headers={
                 "Content-Disposition": f'attachment; filename="{name}.npy"',
-                "Content-Length": str(npy_size(arr)),
+                "Content-Length": str(npy_size(meta)),
             }
             | headers,
         )
@@ -477,7 +477,7 @@ class JobRoutes:
             self.m.access(job_id, _user(request))
             raise NotFoundError(f"no preview {name!r}; available: {', '.join(HTTP_PREVIEWS)}")
         store, headers = self._results_of(request, job_id)
-        if name == "depth" and "depth" not in store.group:
+        if name == "depth" and not store.has_array("depth"):
             raise NotFoundError(f"job {job_id} has no depth yet: it is integrated after the job is done")
         png = await self._preview_png(request, job_id, store, name, inputs_of(name))
         return Response(png, media_type="image/png", headers=headers)

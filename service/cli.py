@@ -215,9 +215,9 @@ def _report_ground_truth(args: argparse.Namespace, out: Path) -> None:
     from service.research import evaluate_store, find_ground_truth
     from storage.layout import JobStore
 
-    depth = JobStore.open(out, mode="r").group.get("depth")
-    if depth is not None:
-        a = depth.attrs
+    store = JobStore.open(out, mode="r")
+    if store.has_array("depth"):
+        a = store.array_meta("depth").attrs
         print(f"depth: {a['pixels']} pixels, residual RMS {a['residual_rms']:.3g} px", file=sys.stderr)
     gt = args.gt or find_ground_truth(args.folder)
     if gt:
