@@ -24,7 +24,7 @@ from storage.datasets import Dataset, load_folder
 from storage.errors import ConflictError, MaxfsError
 
 FINAL_STATES = ("done", "failed", "cancelled")
-#: Response header that marks partial results (the server's :data:`service.app.PARTIAL_HEADER`).
+#: Response header that marks partial results (the server's :data:`service.models.PARTIAL_HEADER`).
 PARTIAL_HEADER = "x-maxfs-partial"
 #: Bytes per piece of a streamed upload.
 UPLOAD_PIECE = 1 << 20
