@@ -182,7 +182,7 @@ class JobRoutes:
     async def list_jobs(self, request: Request) -> list[dict[str, Any]]:
         """All jobs, oldest first."""
         base = str(request.base_url).rstrip("/")
-        return [status_body(r, base) for r in self.m.list(user_of(request))]
+        return [status_body(r, base) for r in self.m.list_jobs(user_of(request))]
 
     async def status(self, job_id: str, request: Request) -> dict[str, Any]:
         """State, progress (tiles, pixels/s, ETA, certified share) and error reason of a job."""
