@@ -12,9 +12,19 @@ import httpx
 
 from service.settings import LOOPBACK, Settings
 from storage.errors import ConflictError, InvalidInputError, MaxfsError
+from storage.records import JobState
 from storage.tokens import TokenStore
 
+#: Exit statuses: 1 a job ended without being done (``run``, ``demo``, ``wait``); 2 usage or bad
+#: input (argparse's own, and every refusal that is the request's fault: a 4xx answer, a bad folder);
+#: 3 the server failed (a 5xx answer) or cannot be reached.
+EXIT_NOT_DONE = 1
 EXIT_USAGE = 2
+EXIT_SERVER = 3
+EXIT_STATUSES = (
+    "exit status: 0 ok; 1 a job ended without being done (run, demo, wait); 2 usage or bad input "
+    "(including the server refusing a request, 4xx); 3 the server failed (5xx) or cannot be reached"
+)
 
 
 def _eps(value: str) -> float | str:
@@ -184,9 +194,9 @@ def cmd_run(args: argparse.Namespace) -> int:
     )
     if args.timings:
         print(tm.table(), file=sys.stderr)
-    if rec.state.value != "done":
+    if rec.state is not JobState.DONE:
         print(f"maxfs: job {rec.state.value}: {rec.error or ''}".rstrip(": "), file=sys.stderr)
-        return 1
+        return EXIT_NOT_DONE
     took = (rec.finished_at or 0) - (rec.started_at or 0)
     print(
         f"done: {rec.pixels_done} masked pixels in {took:.1f} s, eps={rec.eps:.4g}, "
@@ -281,9 +291,9 @@ def cmd_demo(args: argparse.Namespace) -> int:
         on_note=lambda note: print(note, file=sys.stderr),
         on_progress=_progress(),
     )
-    if rec.state.value != "done":
+    if rec.state is not JobState.DONE:
         print(f"maxfs: demo job {rec.state.value}: {rec.error}", file=sys.stderr)
-        return 1
+        return EXIT_NOT_DONE
     normal = JobStore.open(store.path, mode="r").read_output("normal")
     err = synthetic.angular_error_deg(normal, scene.normals)[scene.mask]
     print(
@@ -390,7 +400,7 @@ def cmd_fetch(args: argparse.Namespace) -> int:
     with _client(args) as c:
         if args.wait:
             st = c.wait(args.job_id)
-            if st["state"] != "done" and not args.partial:
+            if st["state"] != JobState.DONE and not args.partial:
                 raise ConflictError(
                     f"job {args.job_id} ended {st['state']}: {st.get('error') or ''}; its results are "
                     "partial (fetch them with --partial)"
@@ -436,7 +446,9 @@ def _job_verbs(sub: Any) -> None:
 def parser() -> argparse.ArgumentParser:
     from service.cliverbs import version
 
-    ap = argparse.ArgumentParser(prog="maxfs", description="Robust photometric stereo (exact Max-FS).")
+    ap = argparse.ArgumentParser(
+        prog="maxfs", description="Robust photometric stereo (exact Max-FS).", epilog=EXIT_STATUSES
+    )
     ap.add_argument("--version", action="version", version=f"maxfs {version()}")
     sub = ap.add_subparsers(dest="command", required=True)
     p = sub.add_parser("run", help="run a dataset folder on this machine")
@@ -536,7 +548,8 @@ def main(argv: list[str] | None = None) -> int:
         return int(args.fn(args))
     except MaxfsError as e:
         print(f"maxfs: error: {e}", file=sys.stderr)
-        return EXIT_USAGE
+        # the client marks errors from the server's answers with their status (service.client)
+        return EXIT_SERVER if getattr(e, "http_status", 0) >= 500 else EXIT_USAGE
     except KeyboardInterrupt:
         print("\nmaxfs: interrupted; run the same command again to resume", file=sys.stderr, flush=True)
         # tiles still running in threads or worker processes would hold the exit (and print
@@ -545,7 +558,7 @@ def main(argv: list[str] | None = None) -> int:
         os._exit(130)
     except httpx.HTTPError as e:
         print(f"maxfs: error: cannot talk to the server ({e}); is `maxfs serve` running?", file=sys.stderr)
-        return EXIT_USAGE
+        return EXIT_SERVER
 
 
 if __name__ == "__main__":
