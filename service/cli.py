@@ -12,9 +12,19 @@ import httpx
 
 from service.settings import LOOPBACK, Settings
 from storage.errors import ConflictError, InvalidInputError, MaxfsError
+from storage.records import JobState
 from storage.tokens import TokenStore
 
+#: Exit statuses: 1 a job ended without being done (``run``, ``demo``, ``wait``); 2 usage or bad
+#: input (argparse's own, and every refusal that is the request's fault: a 4xx answer, a bad folder);
+#: 3 the server failed (a 5xx answer) or cannot be reached.
+EXIT_NOT_DONE = 1
 EXIT_USAGE = 2
+EXIT_SERVER = 3
+EXIT_STATUSES = (
+    "exit status: 0 ok; 1 a job ended without being done (run, demo, wait); 2 usage or bad input "
+    "(including the server refusing a request, 4xx); 3 the server failed (5xx) or cannot be reached"
+)
 
 
 def _eps(value: str) -> float | str:
@@ -185,9 +195,9 @@ def cmd_run(args: argparse.Namespace) -> int:
     )
     if args.timings:
         print(tm.table(), file=sys.stderr)
-    if rec.state.value != "done":
+    if rec.state is not JobState.DONE:
         print(f"maxfs: job {rec.state.value}: {rec.error or ''}".rstrip(": "), file=sys.stderr)
-        return 1
+        return EXIT_NOT_DONE
     took = (rec.finished_at or 0) - (rec.started_at or 0)
     print(
         f"done: {rec.pixels_done} masked pixels in {took:.1f} s, eps={rec.eps:.4g}, "
@@ -216,9 +226,9 @@ def _report_ground_truth(args: argparse.Namespace, out: Path) -> None:
     from service.research import evaluate_store, find_ground_truth
     from storage.layout import JobStore
 
-    depth = JobStore.open(out, mode="r").group.get("depth")
-    if depth is not None:
-        a = depth.attrs
+    store = JobStore.open(out, mode="r")
+    if store.has_array("depth"):
+        a = store.array_meta("depth").attrs
         print(f"depth: {a['pixels']} pixels, residual RMS {a['residual_rms']:.3g} px", file=sys.stderr)
     gt = args.gt or find_ground_truth(args.folder)
     if gt:
@@ -282,9 +292,9 @@ def cmd_demo(args: argparse.Namespace) -> int:
         on_note=lambda note: print(note, file=sys.stderr),
         on_progress=_progress(),
     )
-    if rec.state.value != "done":
+    if rec.state is not JobState.DONE:
         print(f"maxfs: demo job {rec.state.value}: {rec.error}", file=sys.stderr)
-        return 1
+        return EXIT_NOT_DONE
     normal = JobStore.open(store.path, mode="r").read_output("normal")
     err = synthetic.angular_error_deg(normal, scene.normals)[scene.mask]
     print(
@@ -391,7 +401,7 @@ def cmd_fetch(args: argparse.Namespace) -> int:
     with _client(args) as c:
         if args.wait:
             st = c.wait(args.job_id)
-            if st["state"] != "done" and not args.partial:
+            if st["state"] != JobState.DONE and not args.partial:
                 raise ConflictError(
                     f"job {args.job_id} ended {st['state']}: {st.get('error') or ''}; its results are "
                     "partial (fetch them with --partial)"
@@ -437,7 +447,9 @@ def _job_verbs(sub: Any) -> None:
 def parser() -> argparse.ArgumentParser:
     from service.cliverbs import version
 
-    ap = argparse.ArgumentParser(prog="maxfs", description="Robust photometric stereo (exact Max-FS).")
+    ap = argparse.ArgumentParser(
+        prog="maxfs", description="Robust photometric stereo (exact Max-FS).", epilog=EXIT_STATUSES
+    )
     ap.add_argument("--version", action="version", version=f"maxfs {version()}")
     sub = ap.add_subparsers(dest="command", required=True)
     p = sub.add_parser("run", help="run a dataset folder on this machine")
@@ -537,7 +549,8 @@ def main(argv: list[str] | None = None) -> int:
         return int(args.fn(args))
     except MaxfsError as e:
         print(f"maxfs: error: {e}", file=sys.stderr)
-        return EXIT_USAGE
+        # the client marks errors from the server's answers with their status (service.client)
+        return EXIT_SERVER if getattr(e, "http_status", 0) >= 500 else EXIT_USAGE
     except KeyboardInterrupt:
         print("\nmaxfs: interrupted; run the same command again to resume", file=sys.stderr, flush=True)
         # tiles still running in threads or worker processes would hold the exit (and print
@@ -546,7 +559,7 @@ def main(argv: list[str] | None = None) -> int:
         os._exit(130)
     except httpx.HTTPError as e:
         print(f"maxfs: error: cannot talk to the server ({e}); is `maxfs serve` running?", file=sys.stderr)
-        return EXIT_USAGE
+        return EXIT_SERVER
 
 
 if __name__ == "__main__":

@@ -22,9 +22,9 @@ from service.models import ErrorBody, JobStatus
 from service.statuses import error_for_status
 from storage.datasets import Dataset, load_folder
 from storage.errors import ConflictError, MaxfsError
-from storage.records import FINAL_STATES
+from storage.records import FINAL_STATES, JobState
 
-#: Response header that marks partial results (the server's :data:`service.app.PARTIAL_HEADER`).
+#: Response header that marks partial results (the server's :data:`service.models.PARTIAL_HEADER`).
 PARTIAL_HEADER = "x-maxfs-partial"
 #: Bytes per piece of a streamed upload.
 UPLOAD_PIECE = 1 << 20
@@ -38,6 +38,14 @@ def submission_label(ds: Dataset, meta: dict[str, Any]) -> str | None:
         return None
     blob = json.dumps({"files": fp, **meta}, sort_keys=True, default=str).encode()
     return "submit-" + hashlib.sha256(blob).hexdigest()[:32]
+
+
+def answer_error(status: int, detail: str) -> MaxfsError:
+    """The error for an answer of HTTP ``status`` (:func:`service.statuses.error_for_status`); its
+    ``http_status`` says the status, so the CLI tells a failed server (5xx) from a refused request."""
+    err = error_for_status(status)(f"server said {status}: {detail}")
+    err.http_status = status  # type: ignore[attr-defined]
+    return err
 
 
 class MaxfsClient:
@@ -63,7 +71,7 @@ class MaxfsClient:
                 detail = ErrorBody.model_validate_json(r.content).detail
             except ValidationError:
                 detail = r.text
-            raise error_for_status(r.status_code)(f"server said {r.status_code}: {detail}")
+            raise answer_error(r.status_code, detail)
         return r
 
     # -- jobs -------------------------------------------------------------------------------
@@ -152,7 +160,7 @@ class MaxfsClient:
             raise ConflictError(f"{out} already exists; choose a new output path")
         if not partial:
             st = self.status(job_id)
-            if st["state"] != "done":
+            if st["state"] != JobState.DONE:
                 p = st.get("progress", {})
                 raise ConflictError(
                     f"job {job_id} is {st['state']} ({p.get('tiles_done', 0)} of {p.get('tiles_total', 0)} "
@@ -164,7 +172,7 @@ class MaxfsClient:
             with self.http.stream("GET", url) as r:
                 if r.status_code >= 400:
                     r.read()
-                    raise error_for_status(r.status_code)(f"server said {r.status_code}: {r.text}")
+                    raise answer_error(r.status_code, r.text)
                 if r.headers.get(PARTIAL_HEADER) == "true" and not partial:
                     raise ConflictError(f"job {job_id} was restarted while fetching; its results are partial")
                 for chunk in r.iter_bytes():
@@ -213,7 +221,7 @@ class MaxfsClient:
             found = next(
                 (j for j in self.jobs() if j.get("label") == label and j["state"] not in FINAL_STATES), None
             )
-        if found is not None and found["state"] in ("queued", "running"):
+        if found is not None and found["state"] in (JobState.QUEUED, JobState.RUNNING):
             return found["id"]
         if found is None:
             job_id = self.create_job(**meta, label=label)["id"]

@@ -12,7 +12,7 @@ import sys
 import time
 from typing import Any
 
-from storage.records import FINAL_STATES
+from storage.records import FINAL_STATES, JobState
 
 
 def _hms(seconds: float | None) -> str:
@@ -30,7 +30,7 @@ def format_status(st: dict[str, Any]) -> str:
     parts = [st["id"], f"{st['state']:<9}", f"tiles {done}/{total} ({frac:.0%})"]
     if rate:
         parts.append(f"{rate / 1e3:.1f}k px/s")
-    if st["state"] in ("queued", "running"):
+    if st["state"] in (JobState.QUEUED, JobState.RUNNING):
         parts.append(f"ETA {_hms(p.get('eta_seconds'))}")
     if p.get("solved_share") is not None and st["state"] in FINAL_STATES:
         parts.append(f"solved {p['solved_share']:.1%}, certified {p.get('certified_share') or 0:.1%}")
@@ -133,9 +133,11 @@ def cmd_jobs(args: argparse.Namespace) -> int:
 
 
 def wait_and_report(c: Any, job_id: str, as_json: bool) -> int:
+    from service.cli import EXIT_NOT_DONE
+
     st = c.wait(job_id, on_status=Progress().status)
     print(json.dumps(st, indent=1) if as_json else format_status(st))
-    return 0 if st["state"] == "done" else 1
+    return 0 if st["state"] == JobState.DONE else EXIT_NOT_DONE
 
 
 def cmd_wait(args: argparse.Namespace) -> int:

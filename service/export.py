@@ -152,13 +152,13 @@ def export(
         put("inlier_count.npy", dtype="uint16")
         put("inlier_count.png", encode_png(count.astype(np.uint16)), scale="raw count")
     if "depth" in items or "mesh" in items:
-        if "depth" not in store.group:
+        if not store.has_array("depth"):
             from service.research import write_depth
 
             write_depth(store_path)
             store = JobStore.open(store_path, mode="r")
         depth = store.read_output("depth")
-        manifest["depth"] = dict(store.group["depth"].attrs)
+        manifest["depth"] = store.array_meta("depth").attrs
     if "depth" in items:
         np.save(out / "depth.npy", depth)
         put("depth.npy", dtype="float32", units="pixels")

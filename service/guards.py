@@ -26,9 +26,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 from starlette.requests import ClientDisconnect, Request
-from starlette.responses import JSONResponse
 
-from service.statuses import status_of
+from service.error_handlers import error_response
 from storage.errors import (
     AuthError,
     ClientGoneError,
@@ -223,13 +222,6 @@ class RequestGuard:
                 log.info("%s %s: %s", scope["method"], scope["path"], e)
             return await error_response(e)(scope, receive, send)
         return await self.app(scope, receive, send)
-
-
-def error_response(exc: Exception) -> JSONResponse:
-    """The JSON error answer ``{"error", "detail"}`` for ``exc``, with its status."""
-    code = status_of(exc)
-    headers = {"WWW-Authenticate": "Bearer"} if code == 401 else None
-    return JSONResponse({"error": type(exc).__name__, "detail": str(exc)}, status_code=code, headers=headers)
 
 
 def _check_k(body: bytes, max_k: int) -> None:

@@ -7,13 +7,12 @@ half-made (a job folder without a record, staged uploads, temp files) and
 resumes every job whose record says queued or running: a restarted server loses
 no finished tile and finishes what was in flight. Every job belongs to a user;
 other users get "no job" for it, as if it did not exist, unless they are admins.
-Per-user and disk limits are checked here, before anything is stored.
+Per-user and disk limits are checked before anything is stored (:mod:`service.quotas`).
 """
 
 from __future__ import annotations
 
 import asyncio
-import io
 import logging
 import shutil
 import tempfile
@@ -32,28 +31,23 @@ from service.guards import Decoder, DiskBudget, UploadSlots
 from service.index import JobIndex
 from service.local import finish
 from service.orchestrator import run_job
+from service.quotas import JobLimits
 from service.settings import Settings
 from storage.errors import (
     ConflictError,
     InvalidInputError,
     NotFoundError,
-    PayloadTooLargeError,
     QuotaError,
     StoreError,
 )
 from storage.layout import JobSpec, JobStore
 from storage.params import JobParams
 from storage.records import RECORD_NAME, TRANSITIONS, JobRecord, JobState, load_record, save_record
-from storage.tiles import WORK_PER_TILE, grid_shape
 from storage.tokens import User
 
 log = logging.getLogger("maxfs.jobs")
 #: Prefix of every temporary file a process writes in a job folder (removed on start).
 TEMP_PREFIX = ".maxfs-"
-
-
-#: Work of one MILP pixel in units of an exact one, for the bound on hand-set tiles.
-MILP_WORK_COST = 16
 
 
 def owns(user: User, rec: JobRecord) -> bool:
@@ -88,6 +82,8 @@ class JobManager:
         self.disk = DiskBudget(self.root, s.min_free_bytes, None if fake is None else int(fake))
         self.uploads = UploadSlots(s.max_uploads_per_user)
         self.decoder = Decoder(s.decode_slots)
+        #: quota and disk checks (service.quotas)
+        self.limits = JobLimits(s, self.index, self.disk, self._record_or_none)
         self.sweeper: asyncio.Task | None = None
 
     # -- life cycle ---------------------------------------------------------------------------
@@ -172,68 +168,23 @@ class JobManager:
         except (NotFoundError, StoreError):
             return None
 
+    # -- limits (service.quotas), here so that callers need only the manager ------------------
     def open_jobs(self, user: User) -> int:
         """The user's unfinished jobs (reads only the records of those that may be)."""
-        return self.index.count_open(user.name, self._record_or_none)
+        return self.limits.open_jobs(user)
 
     def resolve_tile(self, spec: JobSpec, tile: int | str, solver: str) -> int:
-        """The tile edge of a new job: "auto", or one given by hand, which must fit the task
-        memory (:meth:`JobSpec.check_tile`) and the work per task that "auto" keeps to:
-        ``tile**2 * k`` at most :data:`storage.tiles.WORK_PER_TILE` (a sixteenth of it for the
-        MILP, about a hundred times slower per pixel), so one task lasts seconds, not hours."""
-        edge = spec.resolve_tile(tile, self.settings.task_memory)
-        if tile != "auto":
-            cost = MILP_WORK_COST if solver == "milp" else 1
-            work = edge * edge * spec.k * cost
-            if work > WORK_PER_TILE:
-                fit = max(int((WORK_PER_TILE / (spec.k * cost)) ** 0.5) // 8 * 8, 8)
-                raise InvalidInputError(
-                    f"tile {edge} means {edge * edge} pixels x {spec.k} images per task"
-                    f"{' with the MILP' if cost > 1 else ''}, more work than one task may have "
-                    f"({WORK_PER_TILE // cost} pixel-images); use tile {fit} or less, or 'auto'"
-                )
-        return edge
-
-    def check_tiles(self, spec: JobSpec, params: JobParams) -> None:
-        """At most ``MAXFS_MAX_TILES`` tiles per job."""
-        ny, nx = grid_shape(spec.height, spec.width, params.tile)
-        most = self.settings.max_tiles
-        if ny * nx > most:
-            need = -(-int((spec.pixels / most) ** 0.5) // 16) * 16
-            raise InvalidInputError(
-                f"tile {params.tile} cuts {spec.height} x {spec.width} into {ny * nx} tiles, more than a job "
-                f"may have ({most}, MAXFS_MAX_TILES); use tile {max(need, 16)} or more"
-            )
+        """The tile edge of a new job (:meth:`service.quotas.JobLimits.resolve_tile`)."""
+        return self.limits.resolve_tile(spec, tile, solver)
 
     def check_disk(self, nbytes: int, what: str) -> None:
-        """Refuse (507) to store ``nbytes`` more if that, with what uploads in flight have
-        reserved (:class:`service.guards.DiskBudget`), would eat into the disk reserve."""
-        self.disk.check(nbytes, what)
-
-    def check_limits(self, spec: JobSpec, user: User) -> None:
-        """Per-job and per-user limits, then disk space, before anything is stored."""
-        s = self.settings
-        if spec.k > s.max_k:
-            raise PayloadTooLargeError(
-                f"k={spec.k} images is more than this server allows per job ({s.max_k}, MAXFS_MAX_K); "
-                "split the lights into several jobs"
-            )
-        if spec.pixels > s.max_pixels:
-            raise PayloadTooLargeError(
-                f"{spec.height} x {spec.width} = {spec.pixels} pixels is more than this server allows "
-                f"({s.max_pixels}, MAXFS_MAX_PIXELS); crop or bin the images"
-            )
-        if self.open_jobs(user) >= s.max_open_jobs:
-            raise QuotaError(
-                f"user {user.name!r} already has {s.max_open_jobs} unfinished jobs, the most allowed "
-                "(MAXFS_MAX_OPEN_JOBS); wait for one to finish or cancel one"
-            )
-        self.check_disk(spec.store_nbytes(), f"a job of {spec.k} images of {spec.height} x {spec.width}")
+        """Refuse (507) what would eat into the disk reserve (:meth:`service.quotas.JobLimits.check_disk`)."""
+        self.limits.check_disk(nbytes, what)
 
     def create(self, spec: JobSpec, params: JobParams, user: User, label: str | None = None) -> JobRecord:
         spec = spec.validate()
-        self.check_limits(spec, user)
-        self.check_tiles(spec, params)
+        self.limits.check_limits(spec, user)
+        self.limits.check_tiles(spec, params)
         job_id = uuid.uuid4().hex
         d = self.root / job_id
         try:
@@ -258,7 +209,7 @@ class JobManager:
             self.specs[job_id] = self.store(job_id).spec
         return self.specs[job_id]
 
-    def list(self, user: User, everyone: bool = True) -> list[JobRecord]:
+    def list_jobs(self, user: User, everyone: bool = True) -> list[JobRecord]:
         """Jobs ``user`` may see (an admin sees all when ``everyone``), oldest first; only
         those records are read (:class:`service.index.JobIndex`)."""
         ids = self.index.everyone() if user.admin and everyone else self.index.jobs_of(user.name)
@@ -458,8 +409,3 @@ class JobManager:
             except Exception:
                 log.exception("retention sweep failed; trying again later")
             await asyncio.sleep(period)
-
-def npy_bytes(arr: NDArray) -> bytes:
-    buf = io.BytesIO()
-    np.save(buf, arr)
-    return buf.getvalue()

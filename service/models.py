@@ -1,4 +1,4 @@
-"""Pydantic models of what the HTTP API answers.
+"""Pydantic models of what the HTTP API takes (:class:`CreateJob`) and answers, and the status body.
 
 The server declares these on its routes (``response_model=``, and through :mod:`service.openapi` for
 errors), so ``/openapi.json``, ``/docs`` and ``/redoc`` describe the real bodies; the client
@@ -7,16 +7,23 @@ and the job states, so the command line's client stays quick to start.
 
 A status body is the job record (:class:`storage.records.JobRecord`) plus ``progress``, ``warnings``,
 ``results`` and ``links``; fields added to the record later still pass through (``extra="allow"``),
-so a model never drops what a client relies on.
+so a model never drops what a client relies on. :func:`status_body` makes that body from a record.
 """
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from storage.options import DTYPES
 from storage.records import JobState
+
+if TYPE_CHECKING:
+    from storage.records import JobRecord
+
+#: Header on result answers: "true" while the job is not done (unfinished tiles hold fill values).
+PARTIAL_HEADER = "X-Maxfs-Partial"
 
 
 def _open(schema: dict[str, Any]) -> None:
@@ -112,3 +119,86 @@ class JobStatus(BaseModel):
 class Health(BaseModel):
     status: str = Field(examples=["ok"])
     auth: bool = Field(description="whether /jobs routes need a bearer token")
+
+
+class CreateJob(BaseModel):
+    """A new job: the stack's shape, the lights, and the solver parameters.
+
+    Only types are checked here; values are checked by the one validator the library
+    and the CLI use too (:meth:`JobSpec.validate`, :func:`worker.problem.check_options`).
+    Unknown fields are refused, so a misspelt option is never silently ignored.
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    k: int = Field(description="number of images (at least 3)")
+    height: int = Field(description="image height in pixels")
+    width: int = Field(description="image width in pixels")
+    channels: Literal[1, 3] = Field(1, description="1 = grey, 3 = RGB")
+    dtype: Literal[DTYPES] = "uint8"  # type: ignore[valid-type]
+    lights: list[list[float]] = Field(description="k unit light directions (x right, y up, z toward camera)")
+    intensities: list[float] | list[list[float]] | None = Field(
+        None, description="light intensities: k values, or k x channels"
+    )
+    eps: float | Literal["auto"] = "auto"
+    solver: Literal["exact", "milp", "l2"] = "exact"
+    tile: int | Literal["auto"] = Field(
+        "auto", description="tile edge in pixels (8-4096), or auto: from k and the server's task memory"
+    )
+    shadow: float | None = Field(None, description="intensities <= this are shadows (default: eps)")
+    saturation: float | None = Field(None, description="float input only: values >= this are saturated")
+    box_factor: float = Field(10.0, description="box on n as a multiple of the brightest value (>= 1)")
+    max_nodes: int = Field(200_000, description="exact solver's node budget per pixel (1 to 1e9)")
+    milp_time_limit: float = Field(30.0, description="MILP seconds per pixel (0 to 3600)")
+    label: str | None = Field(
+        None,
+        max_length=200,
+        description="your name for the submission; `maxfs submit` finds an unfinished job by it to resume",
+    )
+    model: Literal["robust", "paper"] = Field(
+        "robust", description="robust (default) or paper (Yu, Seo, Lee 2010 as published); see worker.problem"
+    )
+    response: float | Literal["auto"] | None = Field(
+        None, description="g of I = (L.n)^g, or auto (default of robust; paper: 1)"
+    )
+    eps_rel: float | None = Field(None, description="tolerance eps + eps_rel * I (default 0)")
+    drop_bright: float | None = Field(
+        None, description="share of each pixel's brightest candidates that are outliers (robust: 0.3)"
+    )
+    dequantize: bool | None = Field(None, description="integer input: read v > 0 as v + 0.5 (robust: true)")
+    fallback: bool | None = Field(
+        None, description="least squares where Max-FS gives no normal (robust: true)"
+    )
+
+
+def status_body(
+    rec: JobRecord, base: str, uploaded: int | None = None, k: int | None = None
+) -> dict[str, Any]:
+    """The JSON body of a job (:class:`JobStatus`): its record plus progress, warnings, results and
+    links under ``base``; ``uploaded`` and ``k`` in single-job answers."""
+    body = rec.to_json()
+    body.pop("uploaded_images", None)  # the indices; "uploaded" (count) and "missing_images" say it
+    frac = rec.tiles_done / rec.tiles_total if rec.tiles_total else 0.0
+    body["progress"] = {
+        "fraction": frac,
+        "tiles_done": rec.tiles_done,
+        "tiles_total": rec.tiles_total,
+        "pixels_done": rec.pixels_done,
+        "pixels_total": rec.pixels_total,
+        "pixels_per_second": rec.pixel_rate,
+        "eta_seconds": rec.eta_seconds,
+        "solved_share": rec.solved_share,
+        "certified_share": rec.certified_share,
+    }
+    body["warnings"] = rec.warnings()
+    # results are complete only when done; before the first start there are none at all
+    body["results"] = {"available": rec.started_at is not None, "partial": rec.state is not JobState.DONE}
+    if uploaded is not None:
+        body["uploaded"] = uploaded
+        body["k"] = k
+    body["links"] = {
+        "self": f"{base}/jobs/{rec.id}",
+        "start": f"{base}/jobs/{rec.id}/start",
+        "zip": f"{base}/jobs/{rec.id}/results.zip",
+    }
+    return body

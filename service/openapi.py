@@ -12,7 +12,7 @@ from service.previews import HTTP_PREVIEWS
 from storage.outputs import OUTPUT_NAMES
 
 #: The security scheme of every ``/jobs`` route (Swagger UI's "Authorize" button). It only documents
-#: and never refuses (``auto_error=False``): :func:`service.app.make_auth` checks the token.
+#: and never refuses (``auto_error=False``): :func:`service.auth.make_auth` checks the token.
 BEARER = HTTPBearer(
     scheme_name="bearer",
     description="an API token from `maxfs token create NAME`, sent as `Authorization: Bearer <token>`",

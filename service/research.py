@@ -63,25 +63,13 @@ def write_depth(path: Path | str) -> DepthResult:
     earlier one) with the method and residual as its attributes, and ``previews/depth.png``."""
     store = JobStore.open(Path(path), mode="r+")
     res = integrate(store.read_output("normal"), store.read_mask())
-    g = store.group
-    H, W = res.depth.shape
-    T = int(g["mask"].chunks[0]), int(g["mask"].chunks[1])
-    arr = g.create_array(
-        "depth",
-        shape=(H, W),
-        chunks=T,
-        dtype="float32",
-        fill_value=np.nan,
-        dimension_names=("y", "x"),
-        overwrite=True,
-    )
-    arr[...] = res.depth
-    arr.attrs.update(
+    store.write_depth(
+        res.depth,
         res.attrs()
         | {
             "units": "pixels",
             "long_name": "height toward the camera (z), up to a constant per connected piece (mean 0)",
-        }
+        },
     )
     d = store.path / "previews"
     d.mkdir(exist_ok=True)
@@ -92,7 +80,7 @@ def write_depth(path: Path | str) -> DepthResult:
 def finish_results(path: Path | str) -> str:
     """What follows a finished run: the depth map (when not too large). Returns a note for the user."""
     store = JobStore.open(Path(path), mode="r")
-    solved = int(np.isfinite(store.group["normal"][..., 2]).sum())
+    solved = int(np.isfinite(store.read_array("normal", (..., 2))).sum())
     if solved > AUTO_DEPTH_PIXELS:
         return f"depth not integrated ({solved} pixels > {AUTO_DEPTH_PIXELS}); `maxfs export` makes it"
     res = write_depth(path)

@@ -19,12 +19,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import zarr
 from numpy.typing import NDArray
 
 from service.previews import render
 from storage.imageio import encode_png
-from storage.layout import JobStore
+from storage.layout import ArrayMeta, JobStore
 
 #: Previews whose colours depend on each pixel alone, so they can be rendered band by band.
 PER_PIXEL = frozenset({"normal", "inlier_count"})
@@ -63,17 +62,25 @@ def _bands(
             yield from _bands(shape[1:], chunks[1:], itemsize, limit, (*prefix, i))
 
 
-def npy_pieces(arr: zarr.Array, limit: int = PIECE) -> Iterator[bytes]:
-    """An NPY file of ``arr``, read from the store band by band."""
-    dtype = np.dtype(arr.dtype).newbyteorder("<") if np.dtype(arr.dtype).byteorder == ">" else arr.dtype
-    yield npy_header(tuple(arr.shape), np.dtype(dtype))
-    for sel in _bands(tuple(arr.shape), tuple(arr.chunks), np.dtype(dtype).itemsize, limit):
-        yield np.ascontiguousarray(arr[sel], dtype=dtype).tobytes()
+def npy_pieces(store: JobStore, name: str, limit: int = PIECE) -> Iterator[bytes]:
+    """An NPY file of the store's array ``name``, read band by band."""
+    meta = store.array_meta(name)
+    dtype = meta.dtype.newbyteorder("<") if meta.dtype.byteorder == ">" else meta.dtype
+    yield npy_header(meta.shape, np.dtype(dtype))
+    for sel in _bands(meta.shape, meta.chunks, np.dtype(dtype).itemsize, limit):
+        yield np.ascontiguousarray(store.read_array(name, sel), dtype=dtype).tobytes()
 
 
-def npy_size(arr: zarr.Array) -> int:
+def npy_size(meta: ArrayMeta) -> int:
     """Bytes of :func:`npy_pieces` (for Content-Length)."""
-    return len(npy_header(tuple(arr.shape), np.dtype(arr.dtype))) + int(arr.nbytes)
+    return len(npy_header(meta.shape, meta.dtype)) + meta.nbytes
+
+
+def npy_bytes(arr: NDArray) -> bytes:
+    """A whole (small) array as the bytes of an NPY file."""
+    buf = io.BytesIO()
+    np.save(buf, arr)
+    return buf.getvalue()
 
 
 class _Sink:
@@ -120,13 +127,15 @@ def zip_pieces(files: list[tuple[Path, str]], piece: int = PIECE) -> Iterator[by
     yield sink.take()
 
 
-def _decimated(arr: zarr.Array, step: int) -> NDArray[Any]:
-    """``arr[::step, ::step, ...]``, read in bands of whole chunk rows."""
-    H, W = arr.shape[:2]
-    out = np.empty((-(-H // step), -(-W // step), *arr.shape[2:]), dtype=arr.dtype)
-    rows = max(int(arr.chunks[0]) // step, 1) * step
+def _decimated(store: JobStore, name: str, step: int) -> NDArray[Any]:
+    """``store``'s array ``name`` at ``[::step, ::step, ...]``, read in bands of whole chunk rows."""
+    meta = store.array_meta(name)
+    H, W = meta.shape[:2]
+    out = np.empty((-(-H // step), -(-W // step), *meta.shape[2:]), dtype=meta.dtype)
+    rows = max(int(meta.chunks[0]) // step, 1) * step
     for y in range(0, H, rows):
-        out[y // step : -(-min(y + rows, H) // step)] = arr[y : min(y + rows, H) : step, ::step]
+        band = store.read_array(name, (slice(y, min(y + rows, H), step), slice(None, None, step)))
+        out[y // step : -(-min(y + rows, H) // step)] = band
     return out
 
 
@@ -136,8 +145,7 @@ def preview_png(store: JobStore, name: str, inputs: tuple[str, ...], max_edge: i
     (never a whole array)."""
     H, W = store.spec.height, store.spec.width
     step = max(1, math.ceil(max(H, W) / max(max_edge, 1)))
-    g = store.group
-    arrays = {n: _decimated(g[n], step) for n in store.output_names() if n in inputs}
+    arrays = {n: _decimated(store, n, step) for n in store.output_names() if n in inputs}
     if name not in PER_PIXEL:  # a scale from the whole image (e.g. albedo's percentile)
         return encode_png(render(name, arrays, store.spec.k))
     rows = max(1, (1 << 16) // max(W // step, 1))  # render about 64 K pixels at a time

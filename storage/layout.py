@@ -639,3 +639,45 @@ class JobStore:
     @property
     def cancel_requested(self) -> bool:
         return (self.path / CANCEL_FLAG).exists()
+
+    # -- arrays by name, for code outside this module (only JobStore touches the group) ----------
+    def has_array(self, name: str) -> bool:
+        """Whether the group holds array ``name`` (``depth`` exists once it is integrated)."""
+        return name in self.group
+
+    def array_meta(self, name: str) -> ArrayMeta:
+        """Shape, dtype, chunks and attributes of array ``name``, without reading it."""
+        a = self.group[name]
+        return ArrayMeta(tuple(a.shape), np.dtype(a.dtype), tuple(a.chunks), dict(a.attrs))
+
+    def read_array(self, name: str, region: Any = ...) -> NDArray[Any]:
+        """``region`` of array ``name`` (NumPy basic indexing: an index, slices, a tuple of them)."""
+        return np.asarray(self.group[name][region])
+
+    def write_depth(self, depth: NDArray[np.floating], attrs: dict[str, Any]) -> None:
+        """Store ``depth`` (H, W) as float32, chunked like the mask, with ``attrs`` (replacing one)."""
+        arr = self.group.create_array(
+            "depth",
+            shape=depth.shape,
+            chunks=tuple(int(c) for c in self.group["mask"].chunks),
+            dtype="float32",
+            fill_value=np.nan,
+            dimension_names=("y", "x"),
+            overwrite=True,
+        )
+        arr[...] = depth
+        arr.attrs.update(attrs)
+
+
+@dataclass(frozen=True)
+class ArrayMeta:
+    """What :meth:`JobStore.array_meta` says about one array of the group."""
+
+    shape: tuple[int, ...]
+    dtype: np.dtype
+    chunks: tuple[int, ...]
+    attrs: dict[str, Any]
+
+    @property
+    def nbytes(self) -> int:
+        return int(np.prod(self.shape, dtype=np.int64)) * self.dtype.itemsize

@@ -69,7 +69,6 @@ def test_run_uw_object_writes_sane_outputs(tmp_path: Path, obj: str) -> None:
         (["run", "/nonexistent/folder", "-o", "x.zarr"], "is not a folder"),
         (["run", str(UW), "-o", "x.zarr"], "is not a recognised dataset"),
         (["run", str(UW / "cat"), "-o", "x.zarr", "--eps", "-2"], "eps must be positive"),
-        (["status", "0" * 32, "--server", "http://127.0.0.1:9"], "cannot talk to the server"),
         (["run", str(UW / "cat"), "-o", "x.zarr", "--tile", "4096"], "task budget"),
         (["serve", "--no-auth", "--host", "0.0.0.0"], "refusing to serve without auth"),
         (["token", "create", "../alice", "--data-dir", "d"], "is not allowed"),
@@ -82,6 +81,27 @@ def test_cli_errors_are_messages_not_tracebacks(tmp_path: Path, args: list[str],
     assert message in r.stderr
     assert "Traceback" not in r.stderr
     assert not (tmp_path / "x.zarr").exists()
+
+
+def test_cli_server_failures_exit_3(monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture) -> None:
+    """A server that cannot be reached or answers 5xx is exit 3; its refusals (4xx) are 2, like bad input."""
+    import httpx
+
+    from service import cli
+
+    r = _maxfs("status", "0" * 32, "--server", "http://127.0.0.1:9", timeout=120)
+    assert r.returncode == 3 and "cannot talk to the server" in r.stderr and "Traceback" not in r.stderr
+
+    def answer(request: httpx.Request) -> httpx.Response:
+        if request.url.path == f"/jobs/{'1' * 32}":
+            return httpx.Response(500, json={"error": "StoreError", "detail": "the job store is unreadable"})
+        return httpx.Response(404, json={"error": "NotFoundError", "detail": "no job"})
+
+    real = httpx.Client
+    monkeypatch.setattr(httpx, "Client", lambda **kw: real(transport=httpx.MockTransport(answer), **kw))
+    assert cli.main(["status", "1" * 32, "--server", "http://maxfs.test"]) == cli.EXIT_SERVER == 3
+    assert "server said 500: the job store is unreadable" in capsys.readouterr().err
+    assert cli.main(["status", "2" * 32, "--server", "http://maxfs.test"]) == cli.EXIT_USAGE == 2
 
 
 def test_token_create_list_revoke(tmp_path: Path) -> None:

@@ -74,7 +74,7 @@ def _upload_peaks(url: str, data: Path, k: int, folder: Path) -> tuple[list[int]
     store = JobStore.open(data / "jobs" / job, mode="r")
     assert store.uploaded().all()
     for i in range(k):
-        stored = np.asarray(store.group["images"][i])
+        stored = store.read_array("images", i)
         assert stored.astype("<u2").tobytes() == (folder / f"{i}.raw").read_bytes(), f"image {i} differs"
     return peaks, job
 
