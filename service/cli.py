@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -12,6 +13,7 @@ import httpx
 
 from service.settings import LOOPBACK, Settings
 from storage.errors import ConflictError, InvalidInputError, MaxfsError
+from storage.options import SOLVE_OPTIONS
 from storage.records import JobState
 from storage.tokens import TokenStore
 
@@ -39,62 +41,38 @@ def _eps(value: str) -> float | str:
     return v
 
 
+def _or_auto(kind: type, name: str) -> Callable[[str], Any]:
+    """An argparse type: a number of ``kind``, or the word ``auto``."""
+    what = "a whole number" if kind is int else "a number"
+
+    def parse(value: str) -> Any:
+        if value == "auto":
+            return value
+        try:
+            return kind(value)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{name} must be {what} or 'auto', got {value!r}") from None
+
+    return parse
+
+
 def _solver_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--eps", type=_eps, default="auto", help="Lambertian tolerance, or auto (default: auto)")
-    p.add_argument("--solver", choices=["exact", "milp", "l2"], default="exact")
-    p.add_argument(
-        "--tile",
-        type=_tile,
-        default="auto",
-        help="tile edge in pixels, or auto (from k and MAXFS_TASK_MEMORY)",
-    )
-    p.add_argument("--shadow", type=float, default=None, help="values <= this are shadows (default: eps)")
-    p.add_argument("--saturation", type=float, default=None, help="float input: values >= this are saturated")
-    p.add_argument("--box-factor", type=float, default=None, help="box on n, x the brightest value (10)")
-    p.add_argument("--max-nodes", type=int, default=None, help="exact solver's node budget per pixel")
-    p.add_argument("--milp-time-limit", type=float, default=None, help="MILP seconds per pixel (30)")
-    p.add_argument(
-        "--model",
-        choices=["robust", "paper"],
-        default="robust",
-        help="robust (default: dequantised input, response and eps estimated, brightest 30%% of each "
-        "pixel's images rejected, a fallback fit) or paper (Yu, Seo, Lee 2010 as published)",
-    )
-    p.add_argument("--response", type=_response, default=None, help="g of I = (L.n)^g, or auto")
-    p.add_argument("--eps-rel", type=float, default=None, help="tolerance eps + eps_rel * I (default 0)")
-    p.add_argument("--drop-bright", type=float, default=None, help="share of brightest images rejected")
-    p.add_argument(
-        "--dequantize",
-        action=argparse.BooleanOptionalAction,
-        default=None,
-        help="integer input: read v > 0 as v + 0.5 (the model decides when unset)",
-    )
-    p.add_argument(
-        "--fallback",
-        action=argparse.BooleanOptionalAction,
-        default=None,
-        help="least squares where Max-FS gives no normal (the model decides when unset)",
-    )
-
-
-def _response(value: str) -> float | str:
-    if value == "auto":
-        return value
-    try:
-        return float(value)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"response must be a number or 'auto', got {value!r}") from None
-
-
-def _tile(value: str) -> int | str:
-    if value == "auto":
-        return value
-    try:
-        return int(value)
-    except ValueError:
-        raise argparse.ArgumentTypeError(
-            f"tile must be a whole number of pixels or 'auto', got {value!r}"
-        ) from None
+    """One flag per row of :data:`storage.options.SOLVE_OPTIONS` (the HTTP fields come from
+    the same rows); values are checked by :meth:`JobParams.build`, the one validator."""
+    for o in SOLVE_OPTIONS:
+        shown = f" (default: {o.default})" if o.default is not None else ""
+        kw: dict[str, Any] = {"default": o.default, "help": (o.help + shown).replace("%", "%%")}
+        if o.kind == "choice":
+            kw["choices"] = list(o.choices)
+        elif o.kind == "bool":
+            kw["action"] = argparse.BooleanOptionalAction
+        elif o.name == "eps":
+            kw["type"] = _eps
+        elif o.kind.endswith("|auto"):
+            kw["type"] = _or_auto(int if o.kind.startswith("int") else float, o.name)
+        else:
+            kw["type"] = {"float": float, "int": int}[o.kind]
+        p.add_argument(o.flag, **kw)
 
 
 def _images_arg(p: argparse.ArgumentParser) -> None:
@@ -121,24 +99,8 @@ def _server_args(p: argparse.ArgumentParser) -> None:
 
 
 def _params(args: argparse.Namespace) -> dict[str, Any]:
-    extra = {
-        k: getattr(args, k)
-        for k in (
-            "shadow",
-            "saturation",
-            "box_factor",
-            "max_nodes",
-            "milp_time_limit",
-            "model",
-            "response",
-            "eps_rel",
-            "drop_bright",
-            "dequantize",
-            "fallback",
-        )
-        if getattr(args, k, None) is not None
-    }
-    return {"eps": args.eps, "solver": args.solver, "tile": args.tile} | extra
+    """The solve options given (or defaulted) on the command line, by name."""
+    return {o.name: v for o in SOLVE_OPTIONS if (v := getattr(args, o.name, None)) is not None}
 
 
 def _progress() -> Any:

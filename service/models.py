@@ -14,9 +14,9 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, create_model
 
-from storage.options import DTYPES
+from storage.options import DTYPES, SOLVE_OPTIONS, Option
 from storage.records import JobState
 
 if TYPE_CHECKING:
@@ -121,13 +121,8 @@ class Health(BaseModel):
     auth: bool = Field(description="whether /jobs routes need a bearer token")
 
 
-class CreateJob(BaseModel):
-    """A new job: the stack's shape, the lights, and the solver parameters.
-
-    Only types are checked here; values are checked by the one validator the library
-    and the CLI use too (:meth:`JobSpec.validate`, :func:`worker.problem.check_options`).
-    Unknown fields are refused, so a misspelt option is never silently ignored.
-    """
+class JobShape(BaseModel):
+    """The stack's shape and lights: the part of :class:`CreateJob` that is not a solve option."""
 
     model_config = ConfigDict(extra="forbid")
 
@@ -140,35 +135,44 @@ class CreateJob(BaseModel):
     intensities: list[float] | list[list[float]] | None = Field(
         None, description="light intensities: k values, or k x channels"
     )
-    eps: float | Literal["auto"] = "auto"
-    solver: Literal["exact", "milp", "l2"] = "exact"
-    tile: int | Literal["auto"] = Field(
-        "auto", description="tile edge in pixels (8-4096), or auto: from k and the server's task memory"
-    )
-    shadow: float | None = Field(None, description="intensities <= this are shadows (default: eps)")
-    saturation: float | None = Field(None, description="float input only: values >= this are saturated")
-    box_factor: float = Field(10.0, description="box on n as a multiple of the brightest value (>= 1)")
-    max_nodes: int = Field(200_000, description="exact solver's node budget per pixel (1 to 1e9)")
-    milp_time_limit: float = Field(30.0, description="MILP seconds per pixel (0 to 3600)")
     label: str | None = Field(
         None,
         max_length=200,
         description="your name for the submission; `maxfs submit` finds an unfinished job by it to resume",
     )
-    model: Literal["robust", "paper"] = Field(
-        "robust", description="robust (default) or paper (Yu, Seo, Lee 2010 as published); see worker.problem"
-    )
-    response: float | Literal["auto"] | None = Field(
-        None, description="g of I = (L.n)^g, or auto (default of robust; paper: 1)"
-    )
-    eps_rel: float | None = Field(None, description="tolerance eps + eps_rel * I (default 0)")
-    drop_bright: float | None = Field(
-        None, description="share of each pixel's brightest candidates that are outliers (robust: 0.3)"
-    )
-    dequantize: bool | None = Field(None, description="integer input: read v > 0 as v + 0.5 (robust: true)")
-    fallback: bool | None = Field(
-        None, description="least squares where Max-FS gives no normal (robust: true)"
-    )
+
+
+#: Pydantic types of the kinds of :class:`storage.options.Option`.
+_KINDS: dict[str, Any] = {
+    "float": float,
+    "int": int,
+    "bool": bool,
+    "float|auto": float | Literal["auto"],
+    "int|auto": int | Literal["auto"],
+}
+
+
+def _option_field(o: Option) -> tuple[Any, Any]:
+    kind = Literal[o.choices] if o.kind == "choice" else _KINDS[o.kind]
+    return (kind if o.default is not None else kind | None), Field(o.default, description=o.help)
+
+
+#: ``POST /jobs``: a :class:`JobShape` plus one field per row of
+#: :data:`storage.options.SOLVE_OPTIONS` (the CLI's flags come from the same rows). Only types
+#: are checked here; values by the one validator the library and the CLI use too
+#: (:meth:`JobSpec.validate`, :meth:`JobParams.build`). Unknown fields are refused, so a
+#: misspelt option is never silently ignored.
+CreateJob = create_model(
+    "CreateJob",
+    __base__=JobShape,
+    __doc__="A new job: the stack's shape, the lights, and the solve options.",
+    **{o.name: _option_field(o) for o in SOLVE_OPTIONS},
+)
+
+
+def solve_options(req: BaseModel) -> dict[str, Any]:
+    """The solve options a :class:`CreateJob` gives, by name (unset ones left out)."""
+    return {o.name: v for o in SOLVE_OPTIONS if (v := getattr(req, o.name)) is not None}
 
 
 def status_body(

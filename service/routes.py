@@ -18,7 +18,7 @@ from fastapi.responses import JSONResponse, Response, StreamingResponse
 from service import openapi as api
 from service.auth import make_auth, user_of
 from service.jobs import TEMP_PREFIX, JobManager
-from service.models import PARTIAL_HEADER, CreateJob, status_body
+from service.models import PARTIAL_HEADER, CreateJob, solve_options, status_body
 from service.previews import HTTP_PREVIEWS, inputs_of
 from service.settings import Settings
 from service.streams import npy_pieces, npy_size, preview_png, zip_pieces
@@ -159,22 +159,8 @@ class JobRoutes:
             lights=req.lights,
             intensities=req.intensities,
         ).validate()
-        params = JobParams.build(
-            eps=req.eps,
-            solver=req.solver,
-            tile=self.m.resolve_tile(spec, req.tile, req.solver),
-            shadow=req.shadow,
-            saturation=req.saturation,
-            box_factor=req.box_factor,
-            max_nodes=req.max_nodes,
-            milp_time_limit=req.milp_time_limit,
-            model=req.model,
-            response=req.response,
-            eps_rel=req.eps_rel,
-            drop_bright=req.drop_bright,
-            dequantize=req.dequantize,
-            fallback=req.fallback,
-        )
+        opts = solve_options(req)
+        params = JobParams.build(**opts | {"tile": self.m.resolve_tile(spec, req.tile, req.solver)})
         rec = self.m.create(spec, params, user_of(request), label=req.label)
         body = self._body(request, rec.id)
         return JSONResponse(body, status_code=201, headers={"Location": body["links"]["self"]})

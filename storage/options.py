@@ -242,7 +242,7 @@ SOLVE_OPTIONS: tuple[Option, ...] = (
     Option(
         "solver",
         "choice",
-        "exact (default), milp (the paper's MILP) or l2 (least squares)",
+        "exact (branch and bound, proves each optimum), milp (the paper's MILP) or l2 (least squares)",
         "exact",
         tuple(Solver),
     ),
@@ -257,7 +257,7 @@ SOLVE_OPTIONS: tuple[Option, ...] = (
     Option(
         "model",
         "choice",
-        "robust (default: dequantised input, response and eps estimated, brightest 30% of each pixel's "
+        "robust (dequantised input, response and eps estimated, brightest 30% of each pixel's "
         "images rejected, a fallback fit) or paper (Yu, Seo, Lee 2010 as published)",
         Model.ROBUST.value,
         tuple(Model),

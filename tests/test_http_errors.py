@@ -248,7 +248,7 @@ CASES = [
     Bad("disk-full", _create(), 507, "free above its reserve", server="full", setup=False),
     # one validator: every bad option is a 422 before anything is stored (issue #9)
     Bad("saturation-below-shadow", _create(saturation=2.0, shadow=5.0), 422, "must be above shadow"),
-    Bad("saturation-below-eps", _create(saturation=0.5), 422, "must be above eps"),
+    Bad("saturation-below-eps", _create(saturation=0.2), 422, "must be above the default shadow threshold"),
     Bad("shadow-infinite", _raw_json(json.dumps({**GOOD, "shadow": float("inf")})), 422, "finite"),
     Bad("box-factor-infinite", _raw_json(json.dumps({**GOOD, "box_factor": float("inf")})), 422, "finite"),
     Bad("box-factor-below-1", _create(box_factor=0.5), 422, "box_factor"),
