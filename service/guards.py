@@ -32,6 +32,7 @@ from storage.errors import (
     AuthError,
     ClientGoneError,
     InsufficientStorageError,
+    InvalidInputError,
     PayloadTooLargeError,
     QuotaError,
     RequestTimeoutError,
@@ -46,6 +47,16 @@ def media_type(request: Request, default: str = "") -> str:
     charset=x`` is ``application/octet-stream``)."""
     value = request.headers.get("content-type", default)
     return value.split(";", 1)[0].strip().lower()
+
+
+#: Media types of raw bodies (little-endian pixels): octet-stream, none at all, and what curl
+#: sends by default (``-d``/``--data-binary``); anything else is an image file to decode.
+RAW_TYPES = frozenset({"", "application/octet-stream", "application/x-www-form-urlencoded"})
+
+
+def is_raw(request: Request) -> bool:
+    """Whether an image or mask body is raw bytes (:data:`RAW_TYPES`) rather than a PNG/TIFF file."""
+    return media_type(request) in RAW_TYPES
 
 
 def check_declared(request: Request, limit: int) -> None:
@@ -215,9 +226,10 @@ class RequestGuard:
             if scope["method"] == "POST" and scope["path"].rstrip("/") == "/jobs":
                 s = self.settings
                 body = await read_body(request, s.max_json_bytes, s.upload_idle_timeout)
-                _check_k(body, s.max_k)
+                # parsed in a thread: a large or deeply nested body must not stall other requests
+                await asyncio.to_thread(_check_k, body, s.max_k)
                 receive = _replay(body, receive)
-        except (AuthError, PayloadTooLargeError, RequestTimeoutError, ClientGoneError) as e:
+        except (AuthError, InvalidInputError, RequestTimeoutError, ClientGoneError) as e:
             if isinstance(e, ClientGoneError):
                 log.info("%s %s: %s", scope["method"], scope["path"], e)
             return await error_response(e)(scope, receive, send)
@@ -225,12 +237,17 @@ class RequestGuard:
 
 
 def _check_k(body: bytes, max_k: int) -> None:
-    """Refuse (413) a job of more than ``max_k`` images before its lights are looked at;
-    anything that is not such a JSON object is left to the route's own validation."""
+    """Refuse (413) a job of more than ``max_k`` images before its lights are looked at, and
+    (422) a body that is not JSON at all, with the reason: not UTF-8, malformed, nested past
+    Python's recursion limit, a number of more digits than Python converts. A JSON value that
+    is not a job is left to the route's own validation."""
+    hint = "send a JSON object with k, height, width and lights (see /docs)"
     try:
         obj = json.loads(body)
-    except ValueError:
-        return
+    except RecursionError:
+        raise InvalidInputError(f"the body nests too deeply to be a job; {hint}") from None
+    except ValueError as e:  # also UnicodeDecodeError
+        raise InvalidInputError(f"the body is not valid JSON ({e}); {hint}") from None
     k = obj.get("k") if isinstance(obj, dict) else None
     rows = obj.get("lights") if isinstance(obj, dict) else None
     n = max(

@@ -261,6 +261,13 @@ class JobManager:
 
             def check_inputs() -> None:  # reads the store (the whole mask): in a thread
                 missing = np.flatnonzero(~store.uploaded())
+                if missing.size and rec.state is JobState.CANCELLED:
+                    # a cancelled job takes no more uploads (a cancel is final for its inputs)
+                    raise ConflictError(
+                        f"job {job_id} was cancelled before all its images were uploaded ({missing.size} "
+                        f"missing, first: {int(missing[0])}) and takes no more uploads; delete it "
+                        f"(DELETE /jobs/{job_id}?purge=true, `maxfs delete {job_id}`) and submit again"
+                    )
                 if missing.size:
                     raise ConflictError(
                         f"job {job_id} is missing {missing.size} images (first: {int(missing[0])}); "

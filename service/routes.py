@@ -285,6 +285,8 @@ class JobRoutes:
             if cached.exists():  # made while this request waited
                 return cached.read_bytes()
             png = await asyncio.to_thread(preview_png, store, name, inputs, self.s.preview_max_edge)
+            if not folder.exists():  # deleted while it was rendered: what was read may be fill values
+                raise NotFoundError(f"job {job_id} was deleted while its preview was made")
             for old in folder.glob(f"{TEMP_PREFIX}preview-{name}-*.png"):
                 old.unlink(missing_ok=True)
             tmp = folder / f"{TEMP_PREFIX}preview-{name}-{tag}.part"
@@ -300,7 +302,7 @@ class JobRoutes:
         files = await asyncio.to_thread(store.download_files, inputs)
         # made while it is sent (service.streams): no temporary copy on any disk, one piece in memory
         return StreamingResponse(
-            zip_pieces(files),
+            zip_pieces(files, folder=store.path),
             media_type="application/zip",
             headers={"Content-Disposition": f'attachment; filename="{job_id}.zarr.zip"'} | headers,
         )

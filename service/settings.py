@@ -96,8 +96,8 @@ class Settings(BaseSettings):
     #: Most tiles per job: each tile is a task (about 1 ms of scheduler time) and a chunk file
     #: in every per-tile array, so a job of tiny tiles is slow everywhere; "auto" stays far below.
     max_tiles: int = 4096
-    #: Largest JSON body (``POST /jobs``): lights for ``max_k`` images need far less.
-    max_json_bytes: int = 4 << 20
+    #: Largest JSON body (``POST /jobs``): lights and intensities of 1000 images take ~130 kB.
+    max_json_bytes: int = 1 << 20
     #: Seconds an upload may send nothing before it is dropped (408).
     upload_idle_timeout: float = 60.0
     #: Uploads (image or mask bodies) one user may have in flight at once (429 beyond).

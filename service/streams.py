@@ -22,6 +22,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from service.previews import render
+from storage.errors import NotFoundError
 from storage.imageio import encode_png
 from storage.layout import ArrayMeta, JobStore
 
@@ -62,13 +63,23 @@ def _bands(
             yield from _bands(shape[1:], chunks[1:], itemsize, limit, (*prefix, i))
 
 
+def _still_there(folder: Path) -> None:
+    """Stop an answer whose job was deleted while it was sent: the store's chunks are gone, and
+    Zarr would go on with fill values. Raised inside a streamed answer, this ends the
+    connection before the declared length, so the client sees a cut download, not a wrong one."""
+    if not folder.exists():
+        raise NotFoundError(f"the job at {folder.name} was deleted while it was being downloaded")
+
+
 def npy_pieces(store: JobStore, name: str, limit: int = PIECE) -> Iterator[bytes]:
     """An NPY file of the store's array ``name``, read band by band."""
     meta = store.array_meta(name)
     dtype = meta.dtype.newbyteorder("<") if meta.dtype.byteorder == ">" else meta.dtype
     yield npy_header(meta.shape, np.dtype(dtype))
     for sel in _bands(meta.shape, meta.chunks, np.dtype(dtype).itemsize, limit):
-        yield np.ascontiguousarray(store.read_array(name, sel), dtype=dtype).tobytes()
+        band = np.ascontiguousarray(store.read_array(name, sel), dtype=dtype).tobytes()
+        _still_there(store.path)  # checked after the read: a band read from a deleted store is fill
+        yield band
 
 
 def npy_size(meta: ArrayMeta) -> int:
@@ -105,9 +116,12 @@ class _Sink:
         return out
 
 
-def zip_pieces(files: list[tuple[Path, str]], piece: int = PIECE) -> Iterator[bytes]:
+def zip_pieces(
+    files: list[tuple[Path, str]], piece: int = PIECE, folder: Path | None = None
+) -> Iterator[bytes]:
     """A zip archive (stored, ZIP64 where needed) of ``files`` = (path, name), made while it is
-    sent: at most about one ``piece`` is held, nothing is written to disk."""
+    sent: at most about one ``piece`` is held, nothing is written to disk. With ``folder`` (the
+    job's), the answer stops if the job is deleted meanwhile (:func:`_still_there`)."""
     sink = _Sink()
     with zipfile.ZipFile(sink, "w", zipfile.ZIP_STORED, allowZip64=True) as zf:  # type: ignore[arg-type]
         for path, name in files:
@@ -115,6 +129,8 @@ def zip_pieces(files: list[tuple[Path, str]], piece: int = PIECE) -> Iterator[by
                 info = zipfile.ZipInfo.from_file(path, name)
                 src = open(path, "rb")
             except FileNotFoundError:  # removed meanwhile (a temp file, a rewritten chunk)
+                if folder is not None:
+                    _still_there(folder)
                 continue
             info.compress_type = zipfile.ZIP_STORED
             with src, zf.open(info, "w", force_zip64=info.file_size > (1 << 30)) as dst:
@@ -122,6 +138,8 @@ def zip_pieces(files: list[tuple[Path, str]], piece: int = PIECE) -> Iterator[by
                     dst.write(chunk)
                     if sink.size >= piece:
                         yield sink.take()
+            if folder is not None:
+                _still_there(folder)
             if sink.size >= piece:
                 yield sink.take()
     yield sink.take()

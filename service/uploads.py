@@ -16,10 +16,10 @@ import numpy as np
 from fastapi import Request
 
 from service.auth import user_of
-from service.guards import check_declared, mask_of, media_type, read_body, stage_body
+from service.guards import check_declared, is_raw, mask_of, read_body, stage_body
 from service.jobs import TEMP_PREFIX, JobManager
 from service.settings import Settings
-from storage.errors import ConflictError, InvalidInputError
+from storage.errors import ConflictError, InvalidInputError, NotFoundError
 from storage.layout import JobSpec, JobStore
 
 
@@ -51,10 +51,19 @@ class Uploads:
 
     async def image(self, request: Request, job_id: str, index: int) -> None:
         """Store image ``index`` from the request body: raw little-endian bytes, or PNG/TIFF."""
+        try:
+            await self._image(request, job_id, index)
+        except FileNotFoundError:
+            if self.m.job_dir(job_id).exists():
+                raise
+            # deleted (purge or retention) while the body arrived: its staging file went too
+            raise NotFoundError(f"job {job_id} was deleted during the upload") from None
+
+    async def _image(self, request: Request, job_id: str, index: int) -> None:
         store = self.before_upload(request, job_id, "images can be uploaded")
         spec = store.spec
         store.check_index(index)
-        raw = media_type(request, "application/octet-stream") == "application/octet-stream"
+        raw = is_raw(request)
         limit = spec.image_nbytes if raw else min(self.s.max_upload_bytes, 2 * spec.image_nbytes + (1 << 20))
         check_declared(request, limit)
         user, s = user_of(request), self.s
@@ -73,7 +82,7 @@ class Uploads:
                         raise InvalidInputError(
                             f"image {index}: got {size} bytes, expected {spec.image_nbytes} "
                             f"({' x '.join(map(str, spec.image_shape))} {spec.dtype}, little-endian, "
-                            "row-major)"
+                            "row-major); for a PNG or TIFF file send Content-Type: image/png or image/tiff"
                         )
 
                     def write(st: JobStore) -> None:
@@ -101,9 +110,12 @@ class Uploads:
         HW = spec.height * spec.width
         with self.m.uploads.take(user_of(request).name), self.m.disk.hold(2 * HW, "the mask"):
             data = await read_body(request, 2 * HW + (1 << 20), self.s.upload_idle_timeout)
-            if media_type(request) == "application/octet-stream":
+            if is_raw(request):
                 if len(data) != HW:
-                    raise InvalidInputError(f"mask: got {len(data)} bytes, expected {HW}")
+                    raise InvalidInputError(
+                        f"mask: got {len(data)} bytes, expected {HW} (one byte per pixel, non-zero = "
+                        "object); for a PNG or TIFF file send Content-Type: image/png or image/tiff"
+                    )
                 mask = np.frombuffer(data, dtype=np.uint8).reshape(spec.height, spec.width) > 0
             else:  # header checked first (a small file cannot declare a huge mask); decoded in a thread
                 m = await self.m.decoder.decode(

@@ -7,6 +7,7 @@ through imagecodecs and TIFF through tifffile; Pillow reads the rest (TGA, BMP, 
 from __future__ import annotations
 
 import io
+import re
 import struct
 from dataclasses import dataclass
 from pathlib import Path
@@ -15,7 +16,7 @@ import imagecodecs
 import numpy as np
 import tifffile
 from numpy.typing import NDArray
-from PIL import Image
+from PIL import Image, UnidentifiedImageError
 
 from storage.errors import InvalidInputError, PayloadTooLargeError
 from storage.options import DTYPES
@@ -56,7 +57,7 @@ def decode_bytes(data: bytes, what: str = "image") -> NDArray:
     except InvalidInputError:
         raise
     except Exception as e:  # decoders raise many types for corrupt data
-        raise InvalidInputError(f"{what}: cannot decode image ({type(e).__name__}: {e})") from None
+        raise InvalidInputError(f"{what}: cannot decode image ({_reason(e)})") from None
     return _normalise(np.asarray(arr), what)
 
 
@@ -92,6 +93,14 @@ def _normal_dtype(dtype: np.dtype, what: str) -> np.dtype:
 _PIL_DTYPES = {"I;16": np.uint16, "I;16B": np.uint16, "I;16L": np.uint16, "I": np.uint16, "F": np.float32}
 #: PNG colour type -> channels the decoder returns (palette images come out RGB, or RGBA with tRNS).
 _PNG_CHANNELS = {0: 1, 2: 3, 3: 4, 4: 2, 6: 4}
+
+
+def _reason(e: Exception) -> str:
+    """A decoder's complaint for a user: no object reprs (``<_io.BytesIO object at 0x...>``)."""
+    if isinstance(e, UnidentifiedImageError):
+        return "not a PNG, TIFF, BMP, JPEG or other image file this server reads"
+    text = re.sub(r"<[^<>]* at 0x[0-9a-fA-F]+>", "the data", str(e))
+    return f"{type(e).__name__}: {text}" if text else type(e).__name__
 
 
 def probe_bytes(data: bytes, what: str = "image") -> ImageHeader:
@@ -132,7 +141,7 @@ def probe_bytes(data: bytes, what: str = "image") -> ImageHeader:
     except InvalidInputError:
         raise
     except Exception as e:  # readers raise many types for corrupt headers
-        raise InvalidInputError(f"{what}: cannot decode image ({type(e).__name__}: {e})") from None
+        raise InvalidInputError(f"{what}: cannot decode image ({_reason(e)})") from None
 
 
 def decode_checked(
@@ -171,7 +180,7 @@ def decode_checked(
                 im.load()
                 arr = _pil_array(im)
     except Exception as e:  # decoders raise many types for corrupt data
-        raise InvalidInputError(f"{what}: cannot decode image ({type(e).__name__}: {e})") from None
+        raise InvalidInputError(f"{what}: cannot decode image ({_reason(e)})") from None
     arr = _normalise(np.asarray(arr), what)
     if arr.shape != head.shape or arr.dtype != head.dtype:
         raise InvalidInputError(
