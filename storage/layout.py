@@ -193,6 +193,25 @@ class JobSpec:
     def pixels(self) -> int:
         return self.height * self.width
 
+    def check_params(self, params: JobParams) -> None:
+        """Refuse thresholds that no value of these images can reach: for integer input, an
+        eps or shadow threshold above the brightest grey value the dtype can hold (after the
+        light intensities) makes every observation fit or every one a shadow, and the result
+        meaningless. Float input has no such bound."""
+        dt = np.dtype(self.dtype)
+        if not np.issubdtype(dt, np.integer) or self.intensities is None:
+            return
+        top = float(np.iinfo(dt).max) / float(np.min(self.intensities)) + 1.0
+        for name in ("eps", "shadow"):
+            v = getattr(params, name)
+            if v is not None and v > top:
+                raise InvalidInputError(
+                    f"{name} = {v:g} is above the brightest value {self.dtype} images can hold here "
+                    f"({top:g}, after the light intensities): every observation would "
+                    f"{'fit' if name == 'eps' else 'be a shadow'}; give a value in the data's range, or "
+                    f"{'eps=auto' if name == 'eps' else 'leave it unset'}"
+                )
+
     def store_nbytes(self) -> int:
         """Upper bound of the job's size on disk (images and outputs, uncompressed)."""
         return self.k * self.image_nbytes + self.pixels * output_bytes_per_pixel(self.k, self.channels)
@@ -265,6 +284,7 @@ class JobStore:
     def create(cls, path: Path, spec: JobSpec, params: JobParams) -> JobStore:
         """Create the job directory and every array. Fails if it already exists."""
         spec = spec.validate()
+        spec.check_params(params)
         path = Path(path)
         if (path / GROUP_DIR / "zarr.json").exists():
             raise ConflictError(f"{path} already holds a job store; resume it instead of creating it")
@@ -380,6 +400,7 @@ class JobStore:
 
     def set_params(self, params: JobParams) -> None:
         """Record (possibly new) parameters; tiles made with others stop counting as done."""
+        self.spec.check_params(params)
         self.group.attrs.update(
             {"params": params.to_json(), "params_hash": params.digest() if params.eps is not None else None}
         )

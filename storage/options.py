@@ -62,6 +62,8 @@ MODEL_DEFAULTS = {
 }
 #: Range of the response exponent g (given or estimated).
 RESPONSE_RANGE = (0.2, 5.0)
+#: Largest relative tolerance: past 1 the slab of an observation I reaches below 0 and above 2 I.
+MAX_EPS_REL = 1.0
 #: Largest share of candidates ``drop_bright`` may remove.
 MAX_DROP_BRIGHT = 0.9
 
@@ -142,8 +144,11 @@ def check_options(
             raise InvalidInputError(f"max_nodes must be between 1 and {MAX_NODES_LIMIT}, got {max_nodes}")
     if model is not None and model not in tuple(Model):
         raise InvalidInputError(f"unknown model {model!r}; choose one of {', '.join(Model)}")
-    if eps_rel is not None and not _finite_number("eps_rel", eps_rel) >= 0:
-        raise InvalidInputError(f"eps_rel must be a finite number >= 0, got {eps_rel!r}")
+    if eps_rel is not None and not 0 <= _finite_number("eps_rel", eps_rel) <= MAX_EPS_REL:
+        raise InvalidInputError(
+            f"eps_rel must be between 0 and {MAX_EPS_REL:g} (a tolerance of eps + eps_rel * I; at 1 "
+            f"an image may be off by its whole value), got {eps_rel!r}"
+        )
     if response is not None and response != "auto":
         lo_g, hi_g = RESPONSE_RANGE
         if isinstance(response, str) or not lo_g <= _finite_number("response", response) <= hi_g:
