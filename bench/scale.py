@@ -25,8 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
+from service.harness import BIN, DaskCluster
 from storage.layout import JobStore
-from tests.procs import BIN, DaskCluster
 from worker import synthetic
 from worker.tiles import DEFAULT_TASK_MEMORY, tile_memory
 
