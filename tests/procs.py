@@ -9,6 +9,7 @@ use them too, and ``bench/`` must not import ``tests/``); they are re-exported h
 from __future__ import annotations
 
 import threading
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -51,12 +52,12 @@ class Procs:
 
     def __init__(self, tmp: Path) -> None:
         self.tmp = Path(tmp)
-        self._started: list[Any] = []
+        self._started: list[Callable[[], None]] = []  # how to stop each, oldest first
 
     def cluster(self, n_workers: int = 2, port: int | None = None, logs: Path | None = None) -> DaskCluster:
         """``dask scheduler`` and ``n_workers`` single-threaded workers on loopback."""
         c = DaskCluster(logs or self.tmp, n_workers=n_workers, port=port)
-        self._started.append(c)
+        self._started.append(c.close)
         return c
 
     def server(
@@ -64,25 +65,28 @@ class Procs:
         data_dir: Path | None = None,
         scheduler: str = "",
         logs: Path | None = None,
+        graceful: bool = False,
         **kw: Any,
     ) -> Server:
         """``maxfs serve`` on a free port (keywords as :class:`service.harness.Server`); data in
-        ``data_dir`` (default ``TMP/data``), its log in ``logs`` (default ``TMP``)."""
+        ``data_dir`` (default ``TMP/data``), its log in ``logs`` (default ``TMP``). At close it is
+        SIGKILLed, or with ``graceful`` stopped by SIGTERM (so it closes its cluster; SIGKILL
+        after 30 s)."""
         s = Server(data_dir or self.tmp / "data", scheduler, logs or self.tmp, **kw)
-        self._started.append(s)
+        self._started.append(s.stop if graceful else s.kill)
         return s
 
     def inprocess(self, app: Any) -> InProcessServer:
         s = InProcessServer(app)
-        self._started.append(s)
+        self._started.append(s.kill)
         return s
 
     def close(self) -> None:
         errors: list[BaseException] = []
         while self._started:
-            p = self._started.pop()
+            stop = self._started.pop()
             try:
-                p.close() if isinstance(p, DaskCluster) else p.kill()
+                stop()
             except BaseException as e:  # kill the rest anyway
                 errors.append(e)
         if errors:
