@@ -25,9 +25,9 @@ from pathlib import Path
 
 import numpy as np
 
+from service.harness import BIN, DaskCluster
 from storage.layout import JobStore
 from storage.tiles import DEFAULT_TASK_MEMORY, tile_memory
-from tests.procs import BIN, DaskCluster
 from worker import synthetic
 
 

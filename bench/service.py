@@ -20,10 +20,10 @@ from pathlib import Path
 import numpy as np
 
 from service.client import MaxfsClient
+from service.harness import Server
 from service.local import ingest, run_store
 from storage.datasets import load_folder, write_npy_folder
 from storage.params import JobParams
-from tests.procs import Server
 from worker import synthetic
 from worker.solve import solve
 

@@ -1,8 +1,9 @@
-"""Where the shared real datasets are, and the marker for tests that need them.
+"""Where the shared real datasets are.
 
-The data lives in ``../shared`` beside the checkout (CI has it there; `.ci/run`
-fails without it). A developer without it gets a skip that says what is missing,
-never a confusing failure.
+The data lives in ``../shared/data`` beside the checkout (CI has it there; `.ci/run`
+fails without it). Tests take it through the ``uw_psm`` and ``diligent`` fixtures
+(``tests/conftest.py``): a developer without it gets a skip that names ``../shared``
+and says what is missing, never a confusing failure.
 """
 
 from __future__ import annotations
@@ -16,8 +17,12 @@ UW = SHARED / "uw-psm"
 UW_OBJECTS = ("buddha", "cat", "chrome", "gray", "horse", "owl", "rock")
 DILIGENT = SHARED / "diligent-crop8"
 
-#: Decorate tests that read ``../shared/data``.
-needs_shared = pytest.mark.skipif(
-    not (UW / "lights.txt").exists(),
-    reason=f"needs the shared datasets at {SHARED} (clone the project with ../shared beside it)",
-)
+
+def require(folder: Path, marker: str = "") -> Path:
+    """``folder`` if it (and ``folder/marker``) exists; else skip, naming ``../shared``."""
+    if not (folder / marker).exists():
+        pytest.skip(
+            f"needs the shared datasets in ../shared/data beside the checkout ({folder / marker} is "
+            "missing; clone the project with ../shared beside it)"
+        )
+    return folder

@@ -12,7 +12,7 @@ import pytest
 import zarr
 
 from storage.layout import JobStore
-from tests.data import UW, UW_OBJECTS, needs_shared
+from tests.data import UW_OBJECTS
 
 MAXFS = str(Path(sys.executable).parent / "maxfs")
 
@@ -26,11 +26,10 @@ def _maxfs(*args: str, timeout: float = 300) -> subprocess.CompletedProcess:
 SOLVED_SHARE = {obj: (0.95, 1.0) for obj in UW_OBJECTS} | {"chrome": (0.0, 0.3)}
 
 
-@needs_shared
 @pytest.mark.parametrize("obj", UW_OBJECTS)
-def test_run_uw_object_writes_sane_outputs(tmp_path: Path, obj: str) -> None:
+def test_run_uw_object_writes_sane_outputs(tmp_path: Path, obj: str, uw_psm: Path) -> None:
     out = tmp_path / f"{obj}.zarr"
-    r = _maxfs("run", str(UW / obj), "-o", str(out), "--workers", "2")
+    r = _maxfs("run", str(uw_psm / obj), "-o", str(out), "--workers", "2")
     assert r.returncode == 0, r.stderr
     solved, certified = re.search(r"solved ([\d.]+)%, certified optimal ([\d.]+)%", r.stdout).groups()
     assert float(certified) <= float(solved)
@@ -57,25 +56,29 @@ def test_run_uw_object_writes_sane_outputs(tmp_path: Path, obj: str) -> None:
     if obj == "cat":  # running again resumes: nothing is recomputed
         store = JobStore.open(out, mode="r")
         before, n = store.run_counts(), len(store.tiles())
-        r = _maxfs("run", str(UW / obj), "-o", str(out), "--workers", "1")
+        r = _maxfs("run", str(uw_psm / obj), "-o", str(out), "--workers", "1")
         assert r.returncode == 0 and f"{n} of {n} tiles already done" in r.stderr
         assert JobStore.open(out, mode="r").run_counts() == before
 
 
-@needs_shared
 @pytest.mark.parametrize(
     ("args", "message"),
     [
         (["run", "/nonexistent/folder", "-o", "x.zarr"], "is not a folder"),
-        (["run", str(UW), "-o", "x.zarr"], "is not a recognised dataset"),
-        (["run", str(UW / "cat"), "-o", "x.zarr", "--eps", "-2"], "eps must be positive"),
-        (["run", str(UW / "cat"), "-o", "x.zarr", "--tile", "4096"], "task budget"),
+        (["run", "{uw}", "-o", "x.zarr"], "is not a recognised dataset"),
+        (["run", "{uw}/cat", "-o", "x.zarr", "--eps", "-2"], "eps must be positive"),
+        (["run", "{uw}/cat", "-o", "x.zarr", "--tile", "4096"], "task budget"),
         (["serve", "--no-auth", "--host", "0.0.0.0"], "refusing to serve without auth"),
         (["token", "create", "../alice", "--data-dir", "d"], "is not allowed"),
         (["token", "revoke", "nobody", "--data-dir", "d"], "no user 'nobody'"),
     ],
 )
-def test_cli_errors_are_messages_not_tracebacks(tmp_path: Path, args: list[str], message: str) -> None:
+def test_cli_errors_are_messages_not_tracebacks(
+    tmp_path: Path, args: list[str], message: str, request: pytest.FixtureRequest
+) -> None:
+    if any("{uw}" in a for a in args):  # "{uw}": ../shared/data/uw-psm
+        uw = request.getfixturevalue("uw_psm")
+        args = [a.format(uw=uw) for a in args]
     r = subprocess.run([MAXFS, *args], capture_output=True, text=True, timeout=120, cwd=tmp_path)
     assert r.returncode == 2
     assert message in r.stderr

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -20,35 +21,32 @@ def _maxfs(*args: str, timeout: float = 180) -> subprocess.CompletedProcess:
     return subprocess.run([MAXFS, *args], capture_output=True, text=True, timeout=timeout)
 
 
-def test_job_verbs_against_a_real_server(tmp_path: Path) -> None:
+def test_job_verbs_against_a_real_server(tmp_path: Path, server_factory: Callable[..., Server]) -> None:
     s = synthetic.sphere(8, 24, specular=0.0)
     folder = write_npy_folder(tmp_path / "in", s.images.astype(np.uint8), s.lights, s.mask)
-    server = Server(tmp_path / "data", "", tmp_path, workers=1)
-    try:
-        url = ["--server", server.url]
-        r = _maxfs("submit", str(folder), *url, "--images", "1-6", "--eps", "1", "--wait")
-        assert r.returncode == 0, r.stderr
-        job_id = r.stdout.split()[0]
-        assert len(job_id) == 32 and " done " in r.stdout
-        assert "\r" not in r.stderr and "tiles" in r.stderr  # plain progress lines off a terminal
+    server = server_factory(workers=1, graceful=True)
+    url = ["--server", server.url]
+    r = _maxfs("submit", str(folder), *url, "--images", "1-6", "--eps", "1", "--wait")
+    assert r.returncode == 0, r.stderr
+    job_id = r.stdout.split()[0]
+    assert len(job_id) == 32 and " done " in r.stdout
+    assert "\r" not in r.stderr and "tiles" in r.stderr  # plain progress lines off a terminal
 
-        r = _maxfs("jobs", *url)
-        assert r.returncode == 0 and job_id in r.stdout and "done" in r.stdout
-        r = _maxfs("jobs", *url, "--json")
-        assert [j["id"] for j in json.loads(r.stdout)] == [job_id]
-        r = _maxfs("status", job_id, *url)
-        assert r.returncode == 0 and r.stdout.startswith(job_id) and "tiles 1/1 (100%)" in r.stdout
-        r = _maxfs("status", job_id, *url, "--json")
-        st = json.loads(r.stdout)
-        assert st["state"] == "done" and st["k"] == 6 and st["progress"]["tiles_done"] == 1
-        r = _maxfs("wait", job_id, *url, "--json")
-        assert r.returncode == 0 and json.loads(r.stdout)["state"] == "done"
-        r = _maxfs("start", job_id, *url)
-        assert r.returncode == 2 and "already done" in r.stderr and "Traceback" not in r.stderr
-        r = _maxfs("wait", "0" * 32, *url)
-        assert r.returncode == 2 and "Traceback" not in r.stderr
-    finally:
-        server.stop()
+    r = _maxfs("jobs", *url)
+    assert r.returncode == 0 and job_id in r.stdout and "done" in r.stdout
+    r = _maxfs("jobs", *url, "--json")
+    assert [j["id"] for j in json.loads(r.stdout)] == [job_id]
+    r = _maxfs("status", job_id, *url)
+    assert r.returncode == 0 and r.stdout.startswith(job_id) and "tiles 1/1 (100%)" in r.stdout
+    r = _maxfs("status", job_id, *url, "--json")
+    st = json.loads(r.stdout)
+    assert st["state"] == "done" and st["k"] == 6 and st["progress"]["tiles_done"] == 1
+    r = _maxfs("wait", job_id, *url, "--json")
+    assert r.returncode == 0 and json.loads(r.stdout)["state"] == "done"
+    r = _maxfs("start", job_id, *url)
+    assert r.returncode == 2 and "already done" in r.stderr and "Traceback" not in r.stderr
+    r = _maxfs("wait", "0" * 32, *url)
+    assert r.returncode == 2 and "Traceback" not in r.stderr
 
 
 def test_version() -> None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import socket
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -118,23 +119,22 @@ async def _dask_answers(address: str, **connection_args) -> bool:
         comm.abort()
 
 
-def test_embedded_cluster_refuses_other_local_clients_and_serves_no_http(tmp_path: Path) -> None:
+def test_embedded_cluster_refuses_other_local_clients_and_serves_no_http(
+    server_factory: Callable[..., Server],
+) -> None:
     """Issue #10: a local process must not reach the server's scheduler or workers (they run
     any code sent to them) nor Dask's info pages."""
-    server = Server(tmp_path / "data", "", tmp_path, workers=1)
-    try:
-        dask_ports = _listening_ports(server.proc.pid) - {server.port}
-        assert len(dask_ports) >= 3, dask_ports  # scheduler, nanny, worker
-        foreign = Security.temporary().get_connection_args("client")
-        for port in sorted(dask_ports):
-            assert not _speaks_http(port), f"port {port} answers HTTP"
-            assert not asyncio.run(_dask_answers(f"tcp://127.0.0.1:{port}")), f"plain client got in on {port}"
-            assert not asyncio.run(_dask_answers(f"tls://127.0.0.1:{port}", connection_args=foreign)), (
-                f"a client with another certificate got in on {port}"
-            )
-        assert _speaks_http(server.port)  # the server itself, of course
-    finally:
-        server.kill()
+    server = server_factory(workers=1)
+    dask_ports = _listening_ports(server.proc.pid) - {server.port}
+    assert len(dask_ports) >= 3, dask_ports  # scheduler, nanny, worker
+    foreign = Security.temporary().get_connection_args("client")
+    for port in sorted(dask_ports):
+        assert not _speaks_http(port), f"port {port} answers HTTP"
+        assert not asyncio.run(_dask_answers(f"tcp://127.0.0.1:{port}")), f"plain client got in on {port}"
+        assert not asyncio.run(_dask_answers(f"tls://127.0.0.1:{port}", connection_args=foreign)), (
+            f"a client with another certificate got in on {port}"
+        )
+    assert _speaks_http(server.port)  # the server itself, of course
 
 
 def test_embedded_cluster_serves_a_dashboard_only_when_asked() -> None:

@@ -11,14 +11,13 @@ import tifffile
 
 from storage.datasets import load_folder, write_npy_folder
 from storage.errors import DatasetError
-from tests.data import UW, UW_OBJECTS, needs_shared
+from tests.data import UW_OBJECTS
 from worker import synthetic
 
 
-@needs_shared
 @pytest.mark.parametrize("obj", UW_OBJECTS)
-def test_uw_psm_objects_load(obj: str) -> None:
-    ds = load_folder(UW / obj)
+def test_uw_psm_objects_load(obj: str, uw_psm: Path) -> None:
+    ds = load_folder(uw_psm / obj)
     assert (ds.layout, ds.k, ds.height, ds.width, ds.channels, ds.dtype) == (
         "uw-psm",
         12,

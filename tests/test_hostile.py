@@ -29,7 +29,8 @@ import tifffile
 from distributed import Client
 
 from service.client import MaxfsClient
-from tests.procs import DaskCluster, Server, poll_until
+from tests.badrequests import Bad, Req, check_refused, run_setup, send
+from tests.procs import BIN, DaskCluster, Server, poll_until
 from worker import synthetic
 
 MB = 1 << 20
@@ -146,14 +147,12 @@ LIGHTS12 = synthetic.lights_uniform(12)
 
 
 @pytest.fixture(scope="module")
-def cluster(tmp_path_factory: pytest.TempPathFactory) -> Iterator[DaskCluster]:
-    c = DaskCluster(tmp_path_factory.mktemp("dask"), n_workers=2)
-    yield c
-    c.close()
+def cluster(module_dask_cluster: DaskCluster) -> DaskCluster:
+    return module_dask_cluster
 
 
 @pytest.fixture(scope="module")
-def server(cluster: DaskCluster, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
+def server(cluster: DaskCluster, module_server_factory, tmp_path_factory: pytest.TempPathFactory) -> Server:
     tmp = tmp_path_factory.mktemp("hostile")
     (tmp / "t").mkdir()
     env = {
@@ -164,11 +163,10 @@ def server(cluster: DaskCluster, tmp_path_factory: pytest.TempPathFactory) -> It
         "MAXFS_TILE_RETRIES": "0",
         "TMPDIR": str(tmp / "t"),
     }
-    s = Server(tmp / "data", cluster.address, tmp, auth=True, env=env)
+    s = module_server_factory(tmp / "data", cluster.address, logs=tmp, auth=True, env=env)
     s.tmp = tmp
     s.tokens = {u: s.token(u) for u in ("alice", "bob", "carol")}
-    yield s
-    s.kill()
+    return s
 
 
 def _client(server: Server, user: str) -> MaxfsClient:
@@ -235,13 +233,8 @@ def test_json_body_needs_a_token_and_has_a_cap(server: Server) -> None:
         assert code == 413, body
         # k over the limit: refused before the (many) lights are validated
         k = 200_000
-        r = httpx.post(
-            server.url + "/jobs",
-            headers=_bearer(server.tokens["alice"]),
-            json={"k": k, "height": 8, "width": 8, "lights": [[0, 0, 1]] * k},
-            timeout=60,
-        )
-        assert r.status_code == 413 and "MAX_K" in r.json()["detail"], r.text
+        many = Req("POST", "/jobs", json={"k": k, "height": 8, "width": 8, "lights": [[0, 0, 1]] * k})
+        check_refused(send(server, many), Bad("k-200000", (), many, 413, "MAX_K"))
     _check(p, 40, "56 MB JSON bodies")
 
 
@@ -303,25 +296,41 @@ def _tiff_pages_one_strip(pages: int, size: int) -> bytes:
     return bytes(out)
 
 
+def _bombs() -> list[Bad]:
+    """Bodies that would decode to far more than the job's image (made when a test needs them)."""
+    big = _png_bomb(30000, 30000)  # 0.9 GB of pixels in about 0.9 MB
+
+    def put(path: str, body: bytes, ctype: str) -> Req:
+        return Req("PUT", path, content=body, ctype=ctype, user="bomb")
+
+    return [
+        Bad("png-bomb", (), put("/jobs/{j}/images/0", big, "image/png"), 422, "has shape (30000, 30000)"),
+        Bad(
+            "tiff-declaring-20000",
+            (),
+            put("/jobs/{j}/images/0", _tiff_declaring(20000), "image/tiff"),
+            422,
+            "has shape (20000, 20000)",
+        ),
+        Bad(
+            "tiff-1000-pages",
+            (),
+            put("/jobs/{j}/images/0", _tiff_pages_one_strip(1000, 64), "image/tiff"),
+            422,
+            "holds 1000 images",
+        ),
+        Bad("mask-png-bomb", (), put("/jobs/{j}/mask", big, "image/png"), 422, "has shape (30000, 30000)"),
+    ]
+
+
 def test_decompression_bombs_are_refused_before_decoding(server: Server) -> None:
     with _client(server, "bomb") as c:
         jid = _job(c, size=64, upload=False)
         hdr = {**_bearer(server.tokens["bomb"])}
-        big = _png_bomb(30000, 30000)  # 0.9 GB of pixels in about 0.9 MB
-        tiff = _tiff_declaring(20000)
-        pages = _tiff_pages_one_strip(1000, 64)
-        cases = [
-            (f"/jobs/{jid}/images/0", big, "image/png", "has shape (30000, 30000)"),
-            (f"/jobs/{jid}/images/0", tiff, "image/tiff", "has shape (20000, 20000)"),
-            (f"/jobs/{jid}/images/0", pages, "image/tiff", "holds 1000 images"),
-            (f"/jobs/{jid}/mask", big, "image/png", "has shape (30000, 30000)"),
-        ]
+        cases = _bombs()
         with probe(server) as p:
-            for path, body, ctype, reason in cases:
-                r = httpx.put(
-                    server.url + path, content=body, headers={**hdr, "Content-Type": ctype}, timeout=60
-                )
-                assert r.status_code == 422 and reason in r.json()["detail"], (path, r.text)
+            for case in cases:
+                check_refused(send(server, case.request, jid), case)
         _check(p, 60, "decompression bombs")
         # an honest PNG still goes in (decoded in a thread)
         png = imagecodecs.png_encode(np.full((64, 64), 90, np.uint8))
@@ -406,18 +415,36 @@ def test_small_job_overtakes_a_large_one_and_cancel_frees_workers(
             cl.delete(jid)
 
 
-def test_hand_set_tiles_are_bounded_in_work_and_count(server: Server) -> None:
+_HUGE = {"k": 12, "height": 4096, "width": 4096, "lights": LIGHTS12.tolist(), "eps": 2.0}
+HAND_SET_TILES = [
+    Bad(
+        "tile-640-too-much-work",
+        (),
+        Req("POST", "/jobs", json={**_HUGE, "tile": 640}, user="hal"),
+        422,
+        "more work than one task may have",
+    ),
+    Bad(
+        "tile-160-milp",
+        (),
+        Req("POST", "/jobs", json={**_HUGE, "tile": 160, "solver": "milp"}, user="hal"),
+        422,
+        "with the MILP",
+    ),
+    Bad(
+        "tile-16-too-many",
+        (),
+        Req("POST", "/jobs", json={**_HUGE, "tile": 16}, user="hal"),
+        422,
+        "MAXFS_MAX_TILES",
+    ),
+]
+
+
+@pytest.mark.parametrize("case", HAND_SET_TILES, ids=lambda c: c.name)
+def test_hand_set_tiles_are_bounded_in_work_and_count(server: Server, case: Bad) -> None:
     with _client(server, "hal") as c:
-        hdr = _bearer(server.tokens["hal"])
-        meta = {"k": 12, "height": 4096, "width": 4096, "lights": LIGHTS12.tolist(), "eps": 2.0}
-        r = httpx.post(server.url + "/jobs", headers=hdr, json={**meta, "tile": 640}, timeout=60)
-        assert r.status_code == 422 and "more work than one task may have" in r.json()["detail"], r.text
-        r = httpx.post(
-            server.url + "/jobs", headers=hdr, json={**meta, "tile": 160, "solver": "milp"}, timeout=60
-        )
-        assert r.status_code == 422 and "with the MILP" in r.json()["detail"], r.text
-        r = httpx.post(server.url + "/jobs", headers=hdr, json={**meta, "tile": 16}, timeout=60)
-        assert r.status_code == 422 and "MAXFS_MAX_TILES" in r.json()["detail"], r.text
+        check_refused(send(server, case.request, run_setup(server, case.setup)), case)
         assert not c.jobs()
 
 
@@ -532,7 +559,7 @@ def test_concurrent_state_changes_stay_consistent(server: Server, cluster: DaskC
 # -- 7. disk space is reserved, not just checked; the zip is never copied to disk ----------------
 
 
-def test_concurrent_uploads_cannot_eat_the_disk_reserve(cluster: DaskCluster, tmp_path: Path) -> None:
+def test_concurrent_uploads_cannot_eat_the_disk_reserve(cluster: DaskCluster, server_factory) -> None:
     from storage.layout import JobSpec
 
     lights = synthetic.lights_uniform(6)
@@ -543,35 +570,32 @@ def test_concurrent_uploads_cannot_eat_the_disk_reserve(cluster: DaskCluster, tm
         "MAXFS_FAULT": f"free-bytes:{free}",
         "MAXFS_MAX_UPLOADS_PER_USER": "100",
     }
-    server = Server(tmp_path / "data", cluster.address, tmp_path, auth=True, env=env)
-    try:
-        tok = server.token("dan")
-        with MaxfsClient(server.url, token=tok) as c:
-            jid = c.create_job(k=6, height=1024, width=1024, lights=lights.tolist(), eps=2.0)["id"]
-            img = np.full((1024, 1024), 90, np.uint8).tobytes()
-            head = {
-                "Content-Type": "application/octet-stream",
-                "Content-Length": str(len(img)),
-                **_bearer(tok),
-            }
-            socks = [_open(server, "PUT", f"/jobs/{jid}/images/{i % 6}", head) for i in range(40)]
-            time.sleep(2.0)  # every head has been seen; the refused ones are answered already
-            import select
+    server = server_factory(scheduler=cluster.address, auth=True, env=env)
+    tok = server.token("dan")
+    with MaxfsClient(server.url, token=tok) as c:
+        jid = c.create_job(k=6, height=1024, width=1024, lights=lights.tolist(), eps=2.0)["id"]
+        img = np.full((1024, 1024), 90, np.uint8).tobytes()
+        head = {
+            "Content-Type": "application/octet-stream",
+            "Content-Length": str(len(img)),
+            **_bearer(tok),
+        }
+        socks = [_open(server, "PUT", f"/jobs/{jid}/images/{i % 6}", head) for i in range(40)]
+        time.sleep(2.0)  # every head has been seen; the refused ones are answered already
+        import select
 
-            refused = [s for s in socks if select.select([s], [], [], 0)[0]]
-            held = [s for s in socks if s not in refused]
-            for s in refused:
-                code, body = _answer(s)
-                assert code == 507 and "free above its reserve" in body["detail"], body
-            # each held upload reserved its body and its stored image (2 MB): no more fit than that
-            fit = free // (2 * len(img))
-            assert len(held) == fit < 40, f"{len(held)} of 40 uploads were let in, {fit} fit"
-            for s in held:
-                s.sendall(img)
-                assert _answer(s)[0] == 200
-            assert c.status(jid)["uploaded"] >= 1
-    finally:
-        server.kill()
+        refused = [s for s in socks if select.select([s], [], [], 0)[0]]
+        held = [s for s in socks if s not in refused]
+        for s in refused:
+            code, body = _answer(s)
+            assert code == 507 and "free above its reserve" in body["detail"], body
+        # each held upload reserved its body and its stored image (2 MB): no more fit than that
+        fit = free // (2 * len(img))
+        assert len(held) == fit < 40, f"{len(held)} of 40 uploads were let in, {fit} fit"
+        for s in held:
+            s.sendall(img)
+            assert _answer(s)[0] == 200
+        assert c.status(jid)["uploaded"] >= 1
 
 
 # -- 8. large answers are streamed; previews are bounded and cached --------------------------------
@@ -665,7 +689,7 @@ def test_status_does_not_grow_with_k(server: Server) -> None:
 
 
 @pytest.fixture(scope="module")
-def strict(cluster: DaskCluster, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
+def strict(cluster: DaskCluster, module_server_factory, tmp_path_factory: pytest.TempPathFactory) -> Server:
     """Two open jobs per user, jobs kept 3 s after their last change, tiles stopped after 1 s,
     and 12 connections at most."""
     tmp = tmp_path_factory.mktemp("strict")
@@ -677,16 +701,13 @@ def strict(cluster: DaskCluster, tmp_path_factory: pytest.TempPathFactory) -> It
         "MAXFS_TILE_RETRIES": "0",
         "MAXFS_MAX_CONNECTIONS": "12",
     }
-    s = Server(tmp / "data", cluster.address, tmp, auth=True, env=env)
+    s = module_server_factory(tmp / "data", cluster.address, logs=tmp, auth=True, env=env)
     s.tmp = tmp
-    yield s
-    s.kill()
+    return s
 
 
 def _cli(server: Server, token: str, *args: str) -> str:
     import subprocess
-
-    from tests.procs import BIN
 
     out = subprocess.run(
         [str(BIN / "maxfs"), *args, "--server", server.url, "--token", token],

@@ -15,6 +15,7 @@ import zarr
 
 from storage.datasets import write_npy_folder
 from storage.layout import JobStore
+from tests.procs import poll_until
 from worker import synthetic
 
 MAXFS = str(Path(sys.executable).parent / "maxfs")
@@ -79,12 +80,26 @@ def test_ctrl_c_prints_one_line_and_the_same_command_resumes(tmp_path: Path) -> 
         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),  # as in a terminal
     )
     assert p.stderr is not None
-    for line in p.stderr:  # wait until tiles are being solved
-        if "running" in line:
-            break
-    t0 = time.monotonic()
-    p.send_signal(signal.SIGINT)
-    err = p.communicate(timeout=60)[1]
+    seen: list[str] = []
+
+    def next_line() -> str:
+        """The next line maxfs run writes to stderr (it ending before "running" fails the test)."""
+        line = p.stderr.readline()
+        assert line, f"maxfs run ended before solving a tile: {''.join(seen)}"
+        seen.append(line)
+        return line
+
+    try:
+        poll_until(
+            next_line, 120, "a 'running' progress line (tiles being solved)", 0, lambda ln: "running" in ln
+        )
+        t0 = time.monotonic()
+        p.send_signal(signal.SIGINT)
+        err = p.communicate(timeout=60)[1]
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.communicate()
     assert p.returncode == 130 and time.monotonic() - t0 < 10
     assert "interrupted; run the same command again to resume" in err and "Traceback" not in err
     again = subprocess.run(cmd, capture_output=True, text=True, timeout=300)

@@ -15,6 +15,7 @@ import re
 import shutil
 import subprocess
 import sys
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -24,16 +25,18 @@ import pytest
 from service.client import MaxfsClient
 from storage.datasets import load_folder
 from storage.layout import JobStore
-from tests.data import UW, needs_shared
 from tests.procs import Server, poll_until
 
 REPO = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
 MAXFS = str(BIN / "maxfs")
-CAT = UW / "cat"
 OUTPUTS = ("normal", "albedo", "albedo_rgb", "inliers", "inlier_count", "optimal")
 
-pytestmark = needs_shared
+
+@pytest.fixture(scope="module", autouse=True)
+def cat(uw_psm: Path) -> Path:
+    """Every test here runs on the UW psm cat: without ``../shared/data`` they skip, saying so."""
+    return uw_psm / "cat"
 
 
 @dataclass(frozen=True)
@@ -94,10 +97,10 @@ def slurm() -> Slurm:
 
 
 @pytest.fixture(scope="module")
-def local_ref(tmp_path_factory: pytest.TempPathFactory) -> dict[str, np.ndarray]:
+def local_ref(tmp_path_factory: pytest.TempPathFactory, cat: Path) -> dict[str, np.ndarray]:
     """The cat solved by a plain ``maxfs run`` on this machine."""
     out = tmp_path_factory.mktemp("local") / "cat.zarr"
-    r = subprocess.run([MAXFS, "run", str(CAT), "-o", str(out)], capture_output=True, text=True, timeout=300)
+    r = subprocess.run([MAXFS, "run", str(cat), "-o", str(out)], capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr
     return _arrays(out)
 
@@ -129,11 +132,14 @@ def _wait_released(slurm: Slurm, ids: set[int], timeout: float = 60) -> None:
 
 
 def test_run_on_slurm_equals_local_run_and_slurm_accounts_the_jobs(
-    slurm: Slurm, local_ref: dict[str, np.ndarray], tmp_path: Path
+    slurm: Slurm,
+    local_ref: dict[str, np.ndarray],
+    tmp_path: Path,
+    cat: Path,
 ) -> None:
     out = tmp_path / "cat.zarr"
     r = subprocess.run(
-        [MAXFS, "run", str(CAT), "-o", str(out), "--cluster", "slurm"],
+        [MAXFS, "run", str(cat), "-o", str(out), "--cluster", "slurm"],
         capture_output=True,
         text=True,
         timeout=300,
@@ -154,12 +160,15 @@ def test_run_on_slurm_equals_local_run_and_slurm_accounts_the_jobs(
 
 
 def test_scancel_of_a_worker_job_mid_run_loses_no_tile_and_changes_no_bit(
-    slurm: Slurm, local_ref: dict[str, np.ndarray], tmp_path: Path
+    slurm: Slurm,
+    local_ref: dict[str, np.ndarray],
+    tmp_path: Path,
+    cat: Path,
 ) -> None:
     out = tmp_path / "cat.zarr"
     log = open(tmp_path / "run.log", "wb")
     proc = subprocess.Popen(
-        [MAXFS, "run", str(CAT), "-o", str(out), "--cluster", "slurm"],
+        [MAXFS, "run", str(cat), "-o", str(out), "--cluster", "slurm"],
         stdout=log,
         stderr=subprocess.STDOUT,
         env=slurm.env(MAXFS_SLURM_MIN_JOBS="2", MAXFS_SLURM_MAX_JOBS="2"),
@@ -200,28 +209,31 @@ def test_scancel_of_a_worker_job_mid_run_loses_no_tile_and_changes_no_bit(
 
 
 def test_serve_on_slurm_runs_an_http_job_end_to_end_and_releases_idle_workers(
-    slurm: Slurm, local_ref: dict[str, np.ndarray], tmp_path: Path
+    slurm: Slurm,
+    local_ref: dict[str, np.ndarray],
+    tmp_path: Path,
+    cat: Path,
+    server_factory: Callable[..., Server],
 ) -> None:
     env = slurm.env(MAXFS_CLUSTER="slurm", MAXFS_SLURM_MAX_JOBS="1", MAXFS_SLURM_IDLE_TIMEOUT="2")
-    server = Server(tmp_path / "data", "", tmp_path, env=env)
-    try:
-        with MaxfsClient(server.url) as c:
-            job_id = c.submit_folder(load_folder(CAT))
-            st = c.wait(job_id, poll=0.2, timeout=240)
-            assert st["state"] == "done", st
-            got = {n: c.fetch_array(job_id, n) for n in OUTPUTS}
-        _assert_bit_identical(got, local_ref)
-        ids = _job_ids(tmp_path / "data" / "slurm-logs")
-        assert ids, "no SLURM worker job ran the tiles"
-        _wait_released(slurm, ids, timeout=60)  # idle 2 s: released while the server runs on
-        assert server.proc.poll() is None
-    finally:
-        server.stop()
+    server = server_factory(env=env, graceful=True)  # SIGTERM at teardown: it closes its SLURM cluster
+    with MaxfsClient(server.url) as c:
+        job_id = c.submit_folder(load_folder(cat))
+        st = c.wait(job_id, poll=0.2, timeout=240)
+        assert st["state"] == "done", st
+        got = {n: c.fetch_array(job_id, n) for n in OUTPUTS}
+    _assert_bit_identical(got, local_ref)
+    ids = _job_ids(tmp_path / "data" / "slurm-logs")
+    assert ids, "no SLURM worker job ran the tiles"
+    _wait_released(slurm, ids, timeout=60)  # idle 2 s: released while the server runs on
+    assert server.proc.poll() is None
 
 
-def test_slurm_settings_it_refuses_fail_at_start_with_slurms_words(slurm: Slurm, tmp_path: Path) -> None:
+def test_slurm_settings_it_refuses_fail_at_start_with_slurms_words(
+    slurm: Slurm, tmp_path: Path, cat: Path
+) -> None:
     r = subprocess.run(
-        [MAXFS, "run", str(CAT), "-o", str(tmp_path / "cat.zarr"), "--cluster", "slurm"],
+        [MAXFS, "run", str(cat), "-o", str(tmp_path / "cat.zarr"), "--cluster", "slurm"],
         capture_output=True,
         text=True,
         timeout=120,
@@ -233,7 +245,9 @@ def test_slurm_settings_it_refuses_fail_at_start_with_slurms_words(slurm: Slurm,
 
 
 def test_store_the_workers_cannot_see_fails_the_job_with_a_clear_message(
-    slurm: Slurm, tmp_path: Path
+    slurm: Slurm,
+    tmp_path: Path,
+    cat: Path,
 ) -> None:
     """Worker jobs whose node mounts something else at the output's path (a tmpfs here)."""
     out = tmp_path / "cat.zarr"
@@ -243,7 +257,7 @@ def test_store_the_workers_cannot_see_fails_the_job_with_a_clear_message(
     wrapper.write_text(f"#!/bin/sh\nexec unshare -m sh -c '{hide}' sh \"$@\"\n")
     wrapper.chmod(0o755)
     r = subprocess.run(
-        [MAXFS, "run", str(CAT), "-o", str(out), "--cluster", "slurm"],
+        [MAXFS, "run", str(cat), "-o", str(out), "--cluster", "slurm"],
         capture_output=True,
         text=True,
         timeout=180,
@@ -260,7 +274,10 @@ def test_store_the_workers_cannot_see_fails_the_job_with_a_clear_message(
 
 
 def test_batch_script_runs_maxfs_inside_one_allocation(
-    slurm: Slurm, local_ref: dict[str, np.ndarray], tmp_path: Path
+    slurm: Slurm,
+    local_ref: dict[str, np.ndarray],
+    tmp_path: Path,
+    cat: Path,
 ) -> None:
     out = tmp_path / "cat.zarr"
     env = slurm.env()
@@ -273,7 +290,7 @@ def test_batch_script_runs_maxfs_inside_one_allocation(
             "--mem-per-cpu=1G",
             f"--output={tmp_path / 'batch.log'}",
             str(REPO / "deploy/slurm/maxfs-run.sbatch"),
-            str(CAT),
+            str(cat),
             str(out),
         ],
         capture_output=True,

@@ -9,6 +9,7 @@ import shutil
 import subprocess
 import sys
 import threading
+from collections.abc import Callable
 from pathlib import Path
 
 import httpx
@@ -18,7 +19,6 @@ import zarr
 
 from storage.datasets import write_npy_folder
 from storage.layout import MASK_WRITING, JobStore
-from tests.data import UW, needs_shared
 from tests.procs import Server, poll_until
 from worker import synthetic
 
@@ -40,21 +40,20 @@ def _normals(out: Path) -> np.ndarray:
     return np.asarray(zarr.open_group(out / "results.zarr", mode="r")["normal"][...])
 
 
-@needs_shared
-def test_reused_output_of_another_object_is_refused_then_overwritten(tmp_path: Path) -> None:
+def test_reused_output_of_another_object_is_refused_then_overwritten(tmp_path: Path, uw_psm: Path) -> None:
     out = tmp_path / "cat.zarr"
-    assert _maxfs("run", str(UW / "cat"), "-o", str(out), "--workers", "1").returncode == 0
+    assert _maxfs("run", str(uw_psm / "cat"), "-o", str(out), "--workers", "1").returncode == 0
     cat = _normals(out)
-    r = _maxfs("run", str(UW / "owl"), "-o", str(out), "--workers", "1")
+    r = _maxfs("run", str(uw_psm / "owl"), "-o", str(out), "--workers", "1")
     assert r.returncode == 2 and "Traceback" not in r.stderr
     assert "holds results for other inputs" in r.stderr and "--overwrite" in r.stderr
     np.testing.assert_array_equal(_normals(out), cat)  # nothing stored was touched
-    r = _maxfs("run", str(UW / "owl"), "-o", str(out), "--workers", "1", "--overwrite")
+    r = _maxfs("run", str(uw_psm / "owl"), "-o", str(out), "--workers", "1", "--overwrite")
     assert r.returncode == 0, r.stderr
     owl = _normals(out)
     both = np.isfinite(owl[..., 0]) & np.isfinite(cat[..., 0])
     assert both.sum() > 1000 and not np.allclose(owl[both], cat[both])
-    r = _maxfs("run", str(UW / "owl"), "-o", str(out), "--workers", "1")
+    r = _maxfs("run", str(uw_psm / "owl"), "-o", str(out), "--workers", "1")
     assert r.returncode == 0 and "tiles already done" in r.stderr
 
 
@@ -145,76 +144,72 @@ def _mask_put_until_killed(http: httpx.Client, jid: str, mask: np.ndarray) -> No
         pass
 
 
-def test_mask_cut_short_by_a_killed_server_is_never_used(tmp_path: Path) -> None:
+def test_mask_cut_short_by_a_killed_server_is_never_used(
+    tmp_path: Path, server_factory: Callable[..., Server]
+) -> None:
     sc = synthetic.bump_scene(6, 160, seed=1)
     images = sc.images.astype(np.uint8)
-    server = Server(tmp_path / "data", "", tmp_path, workers=1, env={"MAXFS_FAULT": "pause-mask-write"})
-    try:
-        with httpx.Client(base_url=server.url, timeout=120) as http:
-            jid = _job(http, images, sc.lights, tile=32)
-            threading.Thread(target=_mask_put_until_killed, args=(http, jid, sc.mask), daemon=True).start()
-            store = tmp_path / "data" / "jobs" / jid
+    server = server_factory(workers=1, env={"MAXFS_FAULT": "pause-mask-write"})
+    with httpx.Client(base_url=server.url, timeout=120) as http:
+        jid = _job(http, images, sc.lights, tile=32)
+        threading.Thread(target=_mask_put_until_killed, args=(http, jid, sc.mask), daemon=True).start()
+        store = tmp_path / "data" / "jobs" / jid
 
-            def writing() -> bool:
-                row = np.asarray(
-                    zarr.open_group(store / "results.zarr", mode="r")["input_digests"][images.shape[0]]
-                )
-                return bytes(row) == MASK_WRITING
+        def writing() -> bool:
+            row = np.asarray(
+                zarr.open_group(store / "results.zarr", mode="r")["input_digests"][images.shape[0]]
+            )
+            return bytes(row) == MASK_WRITING
 
-            poll_until(writing, 60, "the server to be part-way through the mask")
-            server.kill()
-    finally:
+        poll_until(writing, 60, "the server to be part-way through the mask")
         server.kill()
     assert JobStore.open(store, mode="r").mask_state() == "incomplete"
-    server = Server(tmp_path / "data", "", tmp_path, workers=1)
-    try:
-        with httpx.Client(base_url=server.url, timeout=120) as http:
-            r = http.post(f"/jobs/{jid}/start")
-            assert r.status_code == 409 and "upload the mask again" in r.json()["detail"]
-            assert _mask_put(http, jid, sc.mask).status_code == 200
-            assert http.post(f"/jobs/{jid}/start").status_code == 202
-            poll_until(lambda: http.get(f"/jobs/{jid}").json()["state"] == "done", 120, "job done")
-            st = http.get(f"/jobs/{jid}").json()
-            assert st["progress"]["pixels_total"] == int(sc.mask.sum())
-            assert st["progress"]["solved_share"] > 0.9 and st["progress"]["certified_share"] > 0.9
-            r = http.get(f"/jobs/{jid}/results/mask.npy")
-            assert r.headers["x-maxfs-partial"] == "false"
-            # server jobs get the previews and the depth that `maxfs run` makes (issue #13)
-            poll_until(lambda: (store / "previews" / "depth.png").exists(), 60, "previews written")
-            depth = http.get(f"/jobs/{jid}/results/depth.npy")
-            assert depth.status_code == 200, depth.text
-        np.testing.assert_array_equal(JobStore.open(store, mode="r").read_mask(), sc.mask)
-    finally:
-        server.kill()
+    server = server_factory(workers=1)
+    with httpx.Client(base_url=server.url, timeout=120) as http:
+        r = http.post(f"/jobs/{jid}/start")
+        assert r.status_code == 409 and "upload the mask again" in r.json()["detail"]
+        assert _mask_put(http, jid, sc.mask).status_code == 200
+        assert http.post(f"/jobs/{jid}/start").status_code == 202
+        poll_until(lambda: http.get(f"/jobs/{jid}").json()["state"] == "done", 120, "job done")
+        st = http.get(f"/jobs/{jid}").json()
+        assert st["progress"]["pixels_total"] == int(sc.mask.sum())
+        assert st["progress"]["solved_share"] > 0.9 and st["progress"]["certified_share"] > 0.9
+        r = http.get(f"/jobs/{jid}/results/mask.npy")
+        assert r.headers["x-maxfs-partial"] == "false"
+        # server jobs get the previews and the depth that `maxfs run` makes (issue #13)
+        poll_until(lambda: (store / "previews" / "depth.png").exists(), 60, "previews written")
+        depth = http.get(f"/jobs/{jid}/results/depth.npy")
+        assert depth.status_code == 200, depth.text
+    np.testing.assert_array_equal(JobStore.open(store, mode="r").read_mask(), sc.mask)
 
 
-def test_results_of_an_unfinished_job_say_so_and_fetch_refuses_them(tmp_path: Path) -> None:
+def test_results_of_an_unfinished_job_say_so_and_fetch_refuses_them(
+    tmp_path: Path, server_factory: Callable[..., Server]
+) -> None:
     sc = synthetic.bump_scene(12, 64, seed=3)
-    server = Server(tmp_path / "data", "", tmp_path, workers=1)
-    try:
-        with httpx.Client(base_url=server.url, timeout=120) as http:
-            jid = _job(http, sc.images.astype(np.uint8), sc.lights, solver="milp", tile=16)
-            assert http.post(f"/jobs/{jid}/start").status_code == 202
-            poll_until(lambda: http.get(f"/jobs/{jid}").json()["state"] == "running", 60, "job running")
-            r = http.delete(f"/jobs/{jid}")
-            assert r.status_code == 200, r.text
-            st = http.get(f"/jobs/{jid}").json()
-            assert st["state"] == "cancelled" and st["results"] == {"available": True, "partial": True}
-            assert http.get(f"/jobs/{jid}/results/normal.npy").headers["x-maxfs-partial"] == "true"
-        env = ["--server", server.url]
-        r = _maxfs("fetch", jid, "-o", str(tmp_path / "got.zarr"), *env)
-        assert r.returncode == 2 and "--partial" in r.stderr and "cancelled" in r.stderr
-        assert not (tmp_path / "got.zarr").exists()
-        r = _maxfs("fetch", jid, "-o", str(tmp_path / "got.zarr"), "--partial", *env)
-        assert r.returncode == 0, r.stderr
-        assert (tmp_path / "got.zarr" / "results.zarr" / "zarr.json").exists()
-        assert not (tmp_path / "got.zarr" / "results.zarr" / "images").exists()  # results only
-        assert (tmp_path / "got.zarr" / "maxfs-job.json").exists()
-        r = _maxfs("fetch", jid, "-o", str(tmp_path / "all"), "--partial", "--inputs", *env)
-        assert r.returncode == 0 and (tmp_path / "all" / "results.zarr" / "images" / "zarr.json").exists()
-    finally:
-        server.kill()
-        shutil.rmtree(tmp_path / "data", ignore_errors=True)
+    server = server_factory(workers=1)
+    with httpx.Client(base_url=server.url, timeout=120) as http:
+        jid = _job(http, sc.images.astype(np.uint8), sc.lights, solver="milp", tile=16)
+        assert http.post(f"/jobs/{jid}/start").status_code == 202
+        poll_until(lambda: http.get(f"/jobs/{jid}").json()["state"] == "running", 60, "job running")
+        r = http.delete(f"/jobs/{jid}")
+        assert r.status_code == 200, r.text
+        st = http.get(f"/jobs/{jid}").json()
+        assert st["state"] == "cancelled" and st["results"] == {"available": True, "partial": True}
+        assert http.get(f"/jobs/{jid}/results/normal.npy").headers["x-maxfs-partial"] == "true"
+    env = ["--server", server.url]
+    r = _maxfs("fetch", jid, "-o", str(tmp_path / "got.zarr"), *env)
+    assert r.returncode == 2 and "--partial" in r.stderr and "cancelled" in r.stderr
+    assert not (tmp_path / "got.zarr").exists()
+    r = _maxfs("fetch", jid, "-o", str(tmp_path / "got.zarr"), "--partial", *env)
+    assert r.returncode == 0, r.stderr
+    assert (tmp_path / "got.zarr" / "results.zarr" / "zarr.json").exists()
+    assert not (tmp_path / "got.zarr" / "results.zarr" / "images").exists()  # results only
+    assert (tmp_path / "got.zarr" / "maxfs-job.json").exists()
+    r = _maxfs("fetch", jid, "-o", str(tmp_path / "all"), "--partial", "--inputs", *env)
+    assert r.returncode == 0 and (tmp_path / "all" / "results.zarr" / "images" / "zarr.json").exists()
+    server.kill()
+    shutil.rmtree(tmp_path / "data", ignore_errors=True)
 
 
 def test_validating_lights_again_changes_no_bit() -> None:

@@ -8,21 +8,17 @@ only its 64 KiB read buffer. numpy and zarr buffers are traced too.
 
 from __future__ import annotations
 
-import threading
-import time
 import tracemalloc
-from collections.abc import Iterator
 from pathlib import Path
 
 import httpx
 import numpy as np
 import pytest
-import uvicorn
 
 from service.app import create_app
 from service.settings import Settings
 from storage.layout import JobStore
-from tests.procs import free_port
+from tests.procs import Procs
 from worker import synthetic
 
 H, W = 1024, 1024
@@ -30,23 +26,11 @@ TILE = 64  # one shard band = 64 rows = 1/16 of an image
 
 
 @pytest.fixture(scope="module")
-def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[str, Path]]:
+def server(module_procs: Procs, tmp_path_factory: pytest.TempPathFactory) -> tuple[str, Path]:
+    """The app under uvicorn in this process (stopped at the module's teardown)."""
     data = tmp_path_factory.mktemp("mem") / "data"
-    settings = Settings(data_dir=data, workers=1, auth=False)
-    port = free_port()
-    srv = uvicorn.Server(
-        uvicorn.Config(create_app(settings), host="127.0.0.1", port=port, log_level="warning")
-    )
-    thread = threading.Thread(target=srv.run, daemon=True)
-    thread.start()
-    url = f"http://127.0.0.1:{port}"
-    t0 = time.monotonic()
-    while not srv.started:
-        assert thread.is_alive() and time.monotonic() - t0 < 120, "server did not start"
-        time.sleep(0.1)
-    yield url, data
-    srv.should_exit = True
-    thread.join(timeout=60)
+    srv = module_procs.inprocess(create_app(Settings(data_dir=data, workers=1, auth=False)))
+    return srv.url, data
 
 
 def _upload_peaks(url: str, data: Path, k: int, folder: Path) -> tuple[list[int], str]:

@@ -37,12 +37,11 @@ def shots(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 @pytest.fixture(scope="module")
-def server(tmp_path_factory: pytest.TempPathFactory):
+def server(module_server_factory, tmp_path_factory: pytest.TempPathFactory) -> Server:
     tmp = tmp_path_factory.mktemp("page")
-    s = Server(tmp / "data", "", tmp, workers=1, auth=True)
+    s = module_server_factory(tmp / "data", logs=tmp, workers=1, auth=True)
     s.tokens = {"alice": s.token("alice"), "bob": s.token("bob"), "root": s.token("root", admin=True)}
-    yield s
-    s.kill()
+    return s
 
 
 @pytest.fixture(scope="module")
