@@ -17,6 +17,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from distributed import Client, as_completed
+from distributed.comm.core import CommClosedError
 
 from service.cluster import check_store_visible
 from service.fairness import BATCH as FAIR_BATCH
@@ -139,7 +140,10 @@ async def run_job(
             try:
                 out: TileOutcome = await fut
             except Exception as e:  # a tile failed after its retries, or the cluster went away
-                if client.status != "running" or "scheduler-connection-lost" in str(e):
+                # a closed comm is the client's link to the scheduler (tile code never raises it);
+                # the client's status may not say so yet
+                lost = isinstance(e, CommClosedError) or "scheduler-connection-lost" in str(e)
+                if lost or client.status != "running":
                     raise RuntimeError(
                         "lost the Dask scheduler while the job ran; finished tiles are kept: "
                         "start the job again once the scheduler is back"

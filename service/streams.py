@@ -77,8 +77,12 @@ def npy_pieces(store: JobStore, name: str, limit: int = PIECE) -> Iterator[bytes
     dtype = meta.dtype.newbyteorder("<") if meta.dtype.byteorder == ">" else meta.dtype
     yield npy_header(meta.shape, np.dtype(dtype))
     for sel in _bands(meta.shape, meta.chunks, np.dtype(dtype).itemsize, limit):
-        band = np.ascontiguousarray(store.read_array(name, sel), dtype=dtype).tobytes()
-        _still_there(store.path)  # checked after the read: a band read from a deleted store is fill
+        try:
+            band = np.ascontiguousarray(store.read_array(name, sel), dtype=dtype).tobytes()
+        except (KeyError, FileNotFoundError):
+            _still_there(store.path)
+            raise
+        _still_there(store.path)  # checked after the read too: a chunk read once it was gone is fill
         yield band
 
 

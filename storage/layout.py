@@ -202,8 +202,8 @@ class JobSpec:
         if not np.issubdtype(dt, np.integer) or self.intensities is None:
             return
         top = float(np.iinfo(dt).max) / float(np.min(self.intensities)) + 1.0
-        for name in ("eps", "shadow"):
-            v = getattr(params, name)
+        asked = None if params.eps_request == "auto" else float(params.eps_request)
+        for name, v in (("eps", params.eps if params.eps is not None else asked), ("shadow", params.shadow)):
             if v is not None and v > top:
                 raise InvalidInputError(
                     f"{name} = {v:g} is above the brightest value {self.dtype} images can hold here "
