@@ -124,36 +124,56 @@ def _dataset(args: argparse.Namespace) -> Any:
     return ds
 
 
+def _prefetch(ds: Any, out: Path, settings: Settings, scheduler: str, cluster: str, workers: int) -> Any:
+    """Start decoding the stack (:class:`storage.stack.StackReader`) when the run will surely
+    need it in memory: a fresh output, the in-process path (no cluster, a stack of at most
+    ``MAXFS_IN_PROCESS_BYTES``); None otherwise (a re-run decodes nothing)."""
+    import numpy as np
+
+    from storage.stack import StackReader
+
+    fresh = not out.exists() or (out.is_dir() and not any(out.iterdir()))
+    local = not scheduler and (cluster or "local").strip().lower() == "local"
+    nbytes = ds.k * ds.height * ds.width * (ds.channels or 1) * np.dtype(ds.dtype).itemsize
+    if fresh and local and nbytes <= settings.in_process_bytes:
+        return StackReader(ds, workers)
+    return None
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     from service.timings import Timings
 
     tm = Timings()
-    with tm.phase("imports"):
+    settings = Settings()
+    with tm.phase("open the folder"):
+        ds = _dataset(args)
+    scheduler = args.scheduler if args.scheduler is not None else settings.scheduler
+    cluster = args.cluster if args.cluster is not None else settings.cluster
+    workers = args.workers or settings.workers
+    prefetch = _prefetch(ds, Path(args.output), settings, scheduler, cluster, workers)
+    with tm.phase("imports"):  # while the images are decoded (prefetch)
         from service.local import run_folder
         from storage.layout import JobSpec
         from storage.params import JobParams
 
-    settings = Settings()
-    with tm.phase("open the folder"):
-        ds = _dataset(args)
     spec = JobSpec(ds.k, ds.height, ds.width, ds.channels, ds.dtype, ds.lights, ds.intensities).validate()
     kw = _params(args)
     tile = spec.resolve_tile(kw["tile"], settings.task_memory, kw.get("solver") or "exact")
     params = JobParams.build(**kw | {"tile": tile})
     print(f"{ds.name}: {ds.k} images of {ds.height} x {ds.width} ({ds.layout}, {ds.dtype})", file=sys.stderr)
-    scheduler = args.scheduler if args.scheduler is not None else settings.scheduler
     store, rec = run_folder(
         ds,
         Path(args.output),
         params,
         overwrite=args.overwrite,
         scheduler=scheduler,
-        cluster=args.cluster if args.cluster is not None else settings.cluster,
-        workers=args.workers or settings.workers,
+        cluster=cluster,
+        workers=workers,
         in_process_bytes=settings.in_process_bytes,
         on_note=lambda note: print(note, file=sys.stderr),
         on_progress=_progress(),
         timings=tm,
+        prefetch=prefetch,
     )
     if args.timings:
         print(tm.table(), file=sys.stderr)

@@ -11,7 +11,6 @@ import asyncio
 import shutil
 import time
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -28,6 +27,7 @@ from storage.imageio import encode_png
 from storage.layout import GROUP_DIR, JobSpec, JobStore, array_digest, is_job_folder, lights_digest
 from storage.params import JobParams
 from storage.records import JobRecord, JobState, load_record, save_record
+from storage.stack import StackReader
 
 
 def ingest(
@@ -182,6 +182,7 @@ def run_folder(
     on_note: Callable[[str], None] | None = None,
     on_progress: ProgressFn | None = None,
     timings: Timings | None = None,
+    prefetch: StackReader | None = None,
 ) -> tuple[JobStore, JobRecord]:
     """``maxfs run``: ingest ``ds`` into ``out`` (or resume it) and solve every tile.
 
@@ -190,10 +191,43 @@ def run_folder(
     (:mod:`service.inprocess`) with the images held in memory and only their digests stored;
     otherwise on a Dask cluster (:mod:`service.cluster`): the embedded one, SLURM
     worker jobs, or ``scheduler``. A finished job is not run again: it costs a look at
-    its done markers. Results are bit-identical either way.
+    its done markers. Results are bit-identical either way. ``prefetch``: the stack, being
+    decoded since the folder was opened (used in process, cancelled otherwise).
     """
-    out = Path(out)
-    tm = timings or Timings()
+    try:
+        return _run_folder(
+            ds,
+            Path(out),
+            params,
+            overwrite,
+            scheduler,
+            workers,
+            cluster,
+            in_process_bytes,
+            on_note,
+            on_progress,
+            timings or Timings(),
+            prefetch,
+        )
+    finally:
+        if prefetch is not None:
+            prefetch.cancel()  # a refused store or an interrupt: the decoding threads stop too
+
+
+def _run_folder(
+    ds: Dataset,
+    out: Path,
+    params: JobParams,
+    overwrite: bool,
+    scheduler: str,
+    workers: int,
+    cluster: str,
+    in_process_bytes: int,
+    on_note: Callable[[str], None] | None,
+    on_progress: ProgressFn | None,
+    tm: Timings,
+    prefetch: StackReader | None,
+) -> tuple[JobStore, JobRecord]:
     stack_bytes = ds.k * ds.height * ds.width * (ds.channels or 1) * np.dtype(ds.dtype).itemsize
     settings = cluster_settings(scheduler, workers, cluster)
     in_process = cluster_kind(settings) == "local" and stack_bytes <= in_process_bytes
@@ -202,14 +236,20 @@ def run_folder(
     if note and on_note:
         on_note(note)
     if store.done_grid().all() and (out / "previews").is_dir():
+        if prefetch is not None:
+            prefetch.cancel()
         return store, load_record(out)  # finished earlier with these inputs and parameters
     if in_process:
         images = None
         if not store.uploaded().all():  # the stack stays in memory; only its digests are stored
             with tm.phase("read images"):
-                images = read_stack(ds, store, workers)
+                images = read_stack(ds, store, workers, prefetch)
+        elif prefetch is not None:
+            prefetch.cancel()
         rec = run_in_process(out, threads=workers, images=images, on_progress=on_progress, timings=tm.add)
     else:
+        if prefetch is not None:
+            prefetch.cancel()
         with tm.phase("cluster run (start, tiles, stop)"):
             rec = asyncio.run(_run(out, settings, on_progress))
     if rec.state is JobState.DONE:
@@ -217,19 +257,13 @@ def run_folder(
     return store, rec
 
 
-def read_stack(ds: Dataset, store: JobStore, threads: int) -> NDArray:
+def read_stack(ds: Dataset, store: JobStore, threads: int, reader: StackReader | None = None) -> NDArray:
     """The whole stack in memory, decoded on ``threads`` threads (PNG/TIFF decoders release the
-    GIL); each image's digest is recorded in the store where it is not yet known."""
-    images = np.empty((ds.k, *store.spec.image_shape), dtype=ds.dtype)
+    GIL), or taken from ``reader`` (started earlier, :class:`storage.stack.StackReader`); each
+    image's digest is recorded in the store where it is not yet known, in one write."""
+    images, digests = (reader or StackReader(ds, threads)).result()
     known = store.known_images()
-
-    def one(i: int) -> None:
-        images[i] = ds.read(i)
-        if not known[i]:
-            store.record_digest(i, array_digest(images[i]))
-
-    with ThreadPoolExecutor(max(1, threads), thread_name_prefix="maxfs-read") as pool:
-        list(pool.map(one, range(ds.k)))
+    store.record_digests({i: d for i, d in enumerate(digests) if not known[i]})
     return images
 
 

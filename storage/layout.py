@@ -56,36 +56,13 @@ import numpy as np
 import zarr
 from numpy.typing import NDArray
 
+from storage.digests import DIGEST_BYTES, ArrayHasher, array_digest
 from storage.errors import ConflictError, InvalidInputError, NotFoundError, StoreError
 from storage.observations import ObservationModel
 from storage.options import DTYPES, check_lights
 from storage.outputs import OUTPUT_NAMES, OUTPUT_TABLE, OUTPUTS_BY_NAME, TILE_OUTPUTS, output_bytes_per_pixel
 from storage.params import JobParams
 from storage.tiles import Tile, auto_tile, grid_shape, tile_memory, tiles
-
-
-class ArrayHasher:
-    """BLAKE2b-256 of an array's shape, dtype and little-endian C-order bytes, fed in
-    consecutive row bands, so a digest is made while the bands are written."""
-
-    def __init__(self, shape: tuple[int, ...], dtype: np.dtype | str) -> None:
-        self.dtype = np.dtype(dtype).newbyteorder("<")
-        self.h = hashlib.blake2b(digest_size=DIGEST_BYTES)
-        self.h.update(f"{tuple(shape)}|{self.dtype.str}|".encode())
-
-    def update(self, band: NDArray[Any]) -> None:
-        a = np.ascontiguousarray(band).astype(self.dtype, copy=False)
-        self.h.update(memoryview(a.reshape(-1)).cast("B"))
-
-    def digest(self) -> bytes:
-        return self.h.digest()
-
-
-def array_digest(arr: NDArray[Any]) -> bytes:
-    """The :class:`ArrayHasher` digest of a whole array."""
-    h = ArrayHasher(arr.shape, arr.dtype)
-    h.update(arr)
-    return h.digest()
 
 
 def lights_digest(spec: JobSpec) -> str:
@@ -109,7 +86,6 @@ FORMAT_VERSION = 3
 GROUP_DIR = "results.zarr"
 #: Arrays that hold the input stack: left out of result downloads unless asked for.
 BULK_INPUTS = frozenset({"images"})
-DIGEST_BYTES = 32
 #: ``input_digests[k]`` while a mask is being written (a crash leaves it there).
 MASK_WRITING = bytes([0xFF]) * DIGEST_BYTES
 RUNS_LOG = "maxfs-runs.log"
@@ -506,8 +482,22 @@ class JobStore:
     def record_digest(self, i: int, digest: bytes) -> None:
         """Record image ``i``'s digest without storing its pixels (a run that keeps the stack
         in memory): the input identity holds, ``uploaded[i]`` stays False."""
-        self.check_index(i)
-        self.group["input_digests"][i] = np.frombuffer(digest, np.uint8)
+        self.record_digests({i: digest})
+
+    def record_digests(self, digests: Mapping[int, bytes]) -> None:
+        """:meth:`record_digest` for many images in one write (a chunk per image, written
+        together: one at a time cost 4 ms each)."""
+        if not digests:
+            return
+        for i in digests:
+            self.check_index(i)
+        idx = sorted(digests)
+        rows = np.stack([np.frombuffer(digests[i], np.uint8) for i in idx])
+        arr = self.group["input_digests"]
+        if idx == list(range(idx[0], idx[-1] + 1)):
+            arr[idx[0] : idx[-1] + 1] = rows
+        else:
+            arr.set_orthogonal_selection((np.asarray(idx), slice(None)), rows)
 
     def known_images(self) -> NDArray[np.bool_]:
         """Images whose digest is recorded (stored, or digested by an in-memory run)."""

@@ -64,7 +64,7 @@ def test_threads_and_dask_cluster_give_identical_stores_and_finished_jobs_do_not
     again = _run(folder, tmp_path / "threads.zarr", "--workers", "2")
     assert again.returncode == 0, again.stderr
     assert "tiles already done" in again.stderr
-    assert _phases(again.stderr) == ["imports", "open the folder", "open or create the store", "total"]
+    assert _phases(again.stderr) == ["open the folder", "imports", "open or create the store", "total"]
     assert JobStore.open(tmp_path / "threads.zarr", mode="r").run_counts() == before
 
 

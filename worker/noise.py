@@ -41,6 +41,9 @@ and mask only, never on the tile grid, so every path gets the same numbers.
 
 from __future__ import annotations
 
+import os
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -192,7 +195,10 @@ def select_response(
     rows = _rows(usable, sample, seed)
     Is, sel = np.maximum(np.asarray(I, np.float64)[rows], 0.0), usable[rows]
     x = np.log(np.asarray(grid, dtype=np.float64))
-    crit = np.array([response_criterion(Is, sel, L, float(np.exp(v))) for v in x])
+    # the candidates are independent, and numpy's large operations release the GIL: on threads
+    # (each value is computed exactly as on one thread)
+    with ThreadPoolExecutor(min(len(x), os.cpu_count() or 1, 4), thread_name_prefix="maxfs-g") as pool:
+        crit = np.array(list(pool.map(lambda v: response_criterion(Is, sel, L, float(np.exp(v))), x)))
     j = int(np.argmin(crit))
     if refine > 2:
         fine = np.linspace(x[max(j - 1, 0)], x[min(j + 1, len(x) - 1)], refine)
@@ -202,7 +208,8 @@ def select_response(
             key = round(float(v), 12)
             return known[key] if key in known else response_criterion(Is, sel, L, float(np.exp(v)))
 
-        crit = np.array([at(v) for v in fine])
+        with ThreadPoolExecutor(min(refine, os.cpu_count() or 1, 4), thread_name_prefix="maxfs-g") as pool:
+            crit = np.array(list(pool.map(at, fine)))
         x = fine
         j = int(np.argmin(crit))
     best = x[j]
