@@ -15,7 +15,6 @@ import socket
 import struct
 import threading
 import time
-import zlib
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -29,6 +28,7 @@ import tifffile
 from distributed import Client
 
 from service.client import MaxfsClient
+from service.loadgen import png_bomb
 from tests.badrequests import Bad, Req, check_refused, run_setup, send
 from tests.procs import BIN, DaskCluster, Server, poll_until
 from worker import synthetic
@@ -241,26 +241,6 @@ def test_json_body_needs_a_token_and_has_a_cap(server: Server) -> None:
 # -- 2. decompression bombs ------------------------------------------------------------------
 
 
-def _png_bomb(w: int, h: int) -> bytes:
-    """A valid grey PNG of w x h zeros, made without compressing them all: one deflate block of
-    rows, ended by a full flush (so it depends on nothing before it), repeated."""
-
-    def chunk(tag: bytes, data: bytes) -> bytes:
-        return struct.pack(">I", len(data)) + tag + data + struct.pack(">I", zlib.crc32(tag + data))
-
-    rows = 100
-    block = b"\x00" * ((w + 1) * rows)
-    z = zlib.compressobj(9, zlib.DEFLATED, -15)
-    piece = z.compress(block) + z.flush(zlib.Z_FULL_FLUSH)
-    adler = 1
-    for _ in range(h // rows):
-        adler = zlib.adler32(block, adler)
-    stream = b"\x78\xda" + piece * (h // rows) + zlib.compressobj(9, zlib.DEFLATED, -15).flush()
-    stream += struct.pack(">I", adler)
-    ihdr = struct.pack(">IIBBBBB", w, h, 8, 0, 0, 0, 0)
-    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", stream) + chunk(b"IEND", b"")
-
-
 def _tiff_declaring(size: int) -> bytes:
     """A deflate TIFF whose tags declare size x size pixels (its one strip holds 64 x 64)."""
     b = io.BytesIO()
@@ -298,7 +278,7 @@ def _tiff_pages_one_strip(pages: int, size: int) -> bytes:
 
 def _bombs() -> list[Bad]:
     """Bodies that would decode to far more than the job's image (made when a test needs them)."""
-    big = _png_bomb(30000, 30000)  # 0.9 GB of pixels in about 0.9 MB
+    big = png_bomb(30000, 30000)  # 0.9 GB of pixels in about 0.9 MB
 
     def put(path: str, body: bytes, ctype: str) -> Req:
         return Req("PUT", path, content=body, ctype=ctype, user="bomb")
