@@ -1,4 +1,5 @@
-"""CLI verbs for server jobs (jobs, wait, start, status --json, submit --wait), --version, plain progress."""
+"""CLI verbs for server jobs (jobs, wait, start, cancel, fetch, delete, status --json, submit --wait and
+its solver options), --version, plain progress."""
 
 from __future__ import annotations
 
@@ -65,3 +66,43 @@ def test_plain_progress_lines_off_a_terminal() -> None:
         p.update(i, 100, "running" if i < 100 else "done", rate=1000.0, eta=10.0)
     lines = out.getvalue().splitlines()
     assert "\r" not in out.getvalue() and 10 <= len(lines) <= 12 and lines[-1].startswith("100/100 tiles")
+
+
+def test_submit_options_cancel_start_wait_fetch_and_delete(
+    tmp_path: Path, server_factory: Callable[..., Server]
+) -> None:
+    """The solver options of ``submit`` reach the job; ``start --wait`` resumes a cancelled job to
+    done; ``fetch --wait`` downloads it; ``delete`` removes it."""
+    s = synthetic.sphere(8, 64, specular=0.0)
+    folder = write_npy_folder(tmp_path / "in", s.images.astype(np.uint8), s.lights, s.mask)
+    server = server_factory(workers=1, graceful=True)
+    url = ["--server", server.url]
+    opts = ["--solver", "milp", "--tile", "16", "--eps", "1", "--model", "paper", "--shadow", "2"]
+    opts += ["--max-nodes", "5000", "--milp-time-limit", "5", "--no-fallback"]
+    r = _maxfs("submit", str(folder), *url, *opts)
+    assert r.returncode == 0, r.stderr
+    job_id = r.stdout.split()[0]
+    r = _maxfs("cancel", job_id, *url)  # 16 tiles of the MILP: seconds of work, cancelled long before
+    assert r.returncode == 0 and r.stdout.strip() == "cancelled", (r.stdout, r.stderr)
+
+    r = _maxfs("fetch", job_id, *url, "-o", str(tmp_path / "partial"))
+    assert r.returncode == 2 and "--partial" in r.stderr and "Traceback" not in r.stderr
+    r = _maxfs("start", job_id, *url, "--wait", "--json")
+    assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout)["state"] == "done"
+    r = _maxfs("fetch", job_id, *url, "-o", str(tmp_path / "out.zarr"), "--wait")
+    assert r.returncode == 0, r.stderr
+
+    from storage.layout import JobStore
+
+    got = JobStore.open(tmp_path / "out.zarr", mode="r")
+    p = got.params
+    assert (p.solver, p.model, p.tile, p.eps, p.shadow) == ("milp", "paper", 16, 1.0, 2.0)
+    assert (p.max_nodes, p.milp_time_limit, p.fallback) == (5000, 5.0, False)
+    assert got.done_grid().all() and np.isfinite(got.read_output("normal")[s.mask]).mean() > 0.9
+
+    r = _maxfs("delete", job_id, *url)
+    assert r.returncode == 0 and "deleted" in r.stderr, r.stderr
+    assert not (server.data / "jobs" / job_id).exists()
+    r = _maxfs("status", job_id, *url)
+    assert r.returncode == 2 and "Traceback" not in r.stderr
