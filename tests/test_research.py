@@ -269,3 +269,23 @@ def test_xarray_opens_a_job_store_with_named_dimensions(tmp_path: Path, channels
         assert ds["albedo_rgb"].dims == ("y", "x", "channel")
     assert "long_name" in ds["normal"].attrs
     assert ds.attrs["k"] == k and ds.attrs["params"]["tile"] == store.params.tile
+
+
+def test_run_reports_the_folders_own_ground_truth_and_gt_overrides_it(tmp_path: Path, diligent: Path) -> None:
+    """A DiLiGenT folder's Normal_gt.mat is evaluated at the end of ``maxfs run``; ``--gt`` names
+    another map, and the printed numbers are those of ``maxfs eval``."""
+    folder = diligent / "catPNG"
+    out = tmp_path / "cat.zarr"
+    r = _maxfs("run", str(folder), "-o", str(out), "--images", "1-24", "--eps", "2", timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert f"vs {folder / 'Normal_gt.mat'}: angular error" in r.stdout, r.stdout
+    ev = json.loads(_maxfs("eval", str(out), "--gt", str(folder / "Normal_gt.mat"), "--json").stdout)
+    assert f"mean {ev['mean_deg']:.3f} deg" in r.stdout, (r.stdout, ev)
+    assert ev["mean_deg"] < 30
+    # --gt: another map, here the ground truth as an NPY of the same normals, gives the same numbers
+    np.save(tmp_path / "gt.npy", np.nan_to_num(load_ground_truth(folder / "Normal_gt.mat").normal))
+    r = _maxfs(
+        "run", str(folder), "-o", str(out), "--images", "1-24", "--eps", "2", "--gt", str(tmp_path / "gt.npy")
+    )
+    assert r.returncode == 0 and f"vs {tmp_path / 'gt.npy'}: " in r.stdout
+    assert f"mean {ev['mean_deg']:.3f} deg" in r.stdout, r.stdout
