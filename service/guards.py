@@ -192,8 +192,9 @@ class Decoder:
 
 
 def mask_of(decoded: NDArray[Any]) -> NDArray[np.bool_]:
-    """An object mask from a decoded image: non-zero in any channel."""
-    return (decoded.max(axis=2) if decoded.ndim == 3 else decoded) > 0
+    """An object mask from a decoded image: non-zero in any channel (NaN is not an object)."""
+    m = np.nan_to_num(np.asarray(decoded), nan=0.0) != 0
+    return m.any(axis=2) if m.ndim == 3 else m
 
 
 class RequestGuard:

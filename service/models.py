@@ -12,9 +12,9 @@ so a model never drops what a client relies on. :func:`status_body` makes that b
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any, Literal
+from typing import TYPE_CHECKING, Annotated, Any, Literal, TypeVar
 
-from pydantic import BaseModel, ConfigDict, Field, create_model
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, create_model
 
 from storage.options import DTYPES, SOLVE_OPTIONS, Option
 from storage.records import JobState
@@ -92,7 +92,9 @@ class JobStatus(BaseModel):
     owner: str = Field(description="the user whose token created the job")
     created_at: float = Field(description="Unix time")
     updated_at: float
-    started_at: float | None = Field(None, description="first start; null = never started (no results)")
+    started_at: float | None = Field(
+        None, description="the latest start (or resume); null = never started (no results)"
+    )
     finished_at: float | None = None
     error: str | None = Field(None, description="why a failed job failed")
     tiles_total: int = 0
@@ -121,18 +123,41 @@ class Health(BaseModel):
     auth: bool = Field(description="whether /jobs routes need a bearer token")
 
 
+def _no_bool(value: Any) -> Any:
+    """JSON ``true`` is not the number 1 (pydantic's lax mode would read it so)."""
+    if isinstance(value, bool):
+        raise ValueError("a number, not true or false")
+    return value
+
+
+def _only_bool(value: Any) -> Any:
+    """JSON ``0``/``1`` or ``"yes"`` is not a flag (pydantic's lax mode would read it so)."""
+    if not isinstance(value, bool):
+        raise ValueError("true or false")
+    return value
+
+
+T = TypeVar("T")
+#: A number field that refuses booleans; the JSON schema is that of ``T``.
+Number = Annotated[T, BeforeValidator(_no_bool)]
+#: A true/false field that refuses numbers and strings.
+Flag = Annotated[bool, BeforeValidator(_only_bool)]
+
+
 class JobShape(BaseModel):
     """The stack's shape and lights: the part of :class:`CreateJob` that is not a solve option."""
 
     model_config = ConfigDict(extra="forbid")
 
-    k: int = Field(description="number of images (at least 3)")
-    height: int = Field(description="image height in pixels")
-    width: int = Field(description="image width in pixels")
-    channels: Literal[1, 3] = Field(1, description="1 = grey, 3 = RGB")
+    k: Number[int] = Field(description="number of images (at least 3)")
+    height: Number[int] = Field(description="image height in pixels")
+    width: Number[int] = Field(description="image width in pixels")
+    channels: Number[Literal[1, 3]] = Field(1, description="1 = grey, 3 = RGB")
     dtype: Literal[DTYPES] = "uint8"  # type: ignore[valid-type]
-    lights: list[list[float]] = Field(description="k unit light directions (x right, y up, z toward camera)")
-    intensities: list[float] | list[list[float]] | None = Field(
+    lights: list[list[Number[float]]] = Field(
+        description="k unit light directions (x right, y up, z toward camera)"
+    )
+    intensities: list[Number[float]] | list[list[Number[float]]] | None = Field(
         None, description="light intensities: k values, or k x channels"
     )
     label: str | None = Field(
@@ -144,11 +169,11 @@ class JobShape(BaseModel):
 
 #: Pydantic types of the kinds of :class:`storage.options.Option`.
 _KINDS: dict[str, Any] = {
-    "float": float,
-    "int": int,
-    "bool": bool,
-    "float|auto": float | Literal["auto"],
-    "int|auto": int | Literal["auto"],
+    "float": Number[float],
+    "int": Number[int],
+    "bool": Flag,
+    "float|auto": Number[float] | Literal["auto"],
+    "int|auto": Number[int] | Literal["auto"],
 }
 
 

@@ -225,7 +225,7 @@ class JobRoutes:
         name: Annotated[str, Path(description="output array", json_schema_extra=api.RESULT_NAME_SCHEMA)],
         request: Request,
     ) -> Response:
-        """One output array as NPY (normal, albedo, albedo_rgb, inliers, inlier_count, optimal, mask).
+        """One output array as NPY (a name of ``storage.outputs.OUTPUT_NAMES``).
 
         While the job is not done the answer is partial (unfinished tiles hold fill values)
         and says so in the ``X-Maxfs-Partial`` header."""

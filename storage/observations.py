@@ -13,6 +13,10 @@ from numpy.typing import ArrayLike, NDArray
 
 from storage.errors import InvalidInputError
 
+#: Accepted light intensities: relative brightnesses; outside this range dividing the images by
+#: them under- or overflows what the tolerance and the response estimate can represent.
+INTENSITY_RANGE = (1e-6, 1e6)
+
 
 @dataclass(frozen=True)
 class ObservationModel:
@@ -77,6 +81,13 @@ class ObservationModel:
             inten = np.broadcast_to(raw, (k, C)).copy()
         if not np.all(np.isfinite(inten)) or np.any(inten <= 0):
             raise InvalidInputError("light intensities must be finite and positive")
+        lo, hi = INTENSITY_RANGE
+        if np.any(inten < lo) or np.any(inten > hi):
+            raise InvalidInputError(
+                f"light intensities must be between {lo:g} and {hi:g} (each light's brightness, "
+                f"relative: the images are divided by them), got {inten.min():g} to {inten.max():g}; "
+                "scale them, e.g. divide them all by the largest"
+            )
         dt = np.dtype(dtype)
         if np.issubdtype(dt, np.integer):
             sensor_max: float | None = float(np.iinfo(dt).max)

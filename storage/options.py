@@ -253,7 +253,11 @@ SOLVE_OPTIONS: tuple[Option, ...] = (
     ),
     Option("tile", "int|auto", "tile edge in pixels (8-4096), or auto: from k and the task memory", "auto"),
     Option("shadow", "float", "intensities <= this are shadows (default: the model's, eps or eps/3)"),
-    Option("saturation", "float", "float input only: values >= this are saturated"),
+    Option(
+        "saturation",
+        "float",
+        "grey values >= this are saturated (integer input is also saturated at its dtype's maximum)",
+    ),
     Option(
         "box_factor", "float", f"box on n as a multiple of the brightest value (>= 1; {DEFAULT_BOX_FACTOR:g})"
     ),

@@ -67,3 +67,13 @@ def test_a_bomb_is_refused_from_its_header() -> None:
     with pytest.raises(PayloadTooLargeError, match="decoding would take"):
         decode_checked(bytes(bomb), "image 0", max_bytes=1 << 20)
     assert decode_checked(small, "image 0", max_bytes=1 << 20, shape=(8, 8)).shape == (8, 8)
+
+
+def test_mask_images_follow_non_zero_is_object() -> None:
+    from service.guards import mask_of
+
+    m = np.array([[0.0, -1.0], [np.nan, 0.5]], np.float32)
+    np.testing.assert_array_equal(mask_of(m), [[False, True], [False, True]])
+    rgb = np.zeros((2, 2, 3), np.uint8)
+    rgb[1, 0, 2] = 7
+    np.testing.assert_array_equal(mask_of(rgb), [[False, False], [True, False]])

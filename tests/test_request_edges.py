@@ -133,9 +133,16 @@ def test_raw_masks_and_images_need_no_exact_content_type(http: httpx.Client, cty
         ({"eps": 1e308}, "eps = 1e+308 is above the brightest value"),
         ({"shadow": 1e9}, "shadow = 1e+09 is above the brightest value"),
         ({"eps_rel": 1e308}, "eps_rel must be between 0 and 1"),
+        ({"intensities": [1e-300] * 6}, "light intensities must be between"),
+        ({"intensities": [1e308] * 6}, "light intensities must be between"),
+        ({"eps": True}, "a number, not true or false"),
+        ({"height": True}, "a number, not true or false"),
+        ({"max_nodes": True}, "a number, not true or false"),
+        ({"dequantize": 0}, "true or false"),
+        ({"lights": [[0, 0, True]] * 6}, "a number, not true or false"),
     ],
 )
-def test_thresholds_no_value_can_reach_are_refused(http: httpx.Client, params: dict, reason: str) -> None:
+def test_values_that_cannot_mean_anything_are_refused(http: httpx.Client, params: dict, reason: str) -> None:
     body = {"k": 6, "height": 32, "width": 32, "dtype": "uint8", "lights": LIGHTS.tolist()} | params
     r = http.post("/jobs", json=body)
     assert r.status_code == 422 and reason in r.json()["detail"], r.text
