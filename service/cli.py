@@ -11,7 +11,7 @@ from typing import Any
 
 import httpx
 
-from service.settings import LOOPBACK, Settings
+from service.settings import LOOPBACK, Settings, cluster_settings, runs_in_process
 from storage.errors import ConflictError, InvalidInputError, MaxfsError
 from storage.options import SOLVE_OPTIONS
 from storage.records import JobState
@@ -128,14 +128,11 @@ def _prefetch(ds: Any, out: Path, settings: Settings, scheduler: str, cluster: s
     """Start decoding the stack (:class:`storage.stack.StackReader`) when the run will surely
     need it in memory: a fresh output, the in-process path (no cluster, a stack of at most
     ``MAXFS_IN_PROCESS_BYTES``); None otherwise (a re-run decodes nothing)."""
-    import numpy as np
-
     from storage.stack import StackReader
 
     fresh = not out.exists() or (out.is_dir() and not any(out.iterdir()))
-    local = not scheduler and (cluster or "local").strip().lower() == "local"
-    nbytes = ds.k * ds.height * ds.width * (ds.channels or 1) * np.dtype(ds.dtype).itemsize
-    if fresh and local and nbytes <= settings.in_process_bytes:
+    chosen = cluster_settings(scheduler, workers, cluster)
+    if fresh and runs_in_process(chosen, ds.nbytes, settings.in_process_bytes):
         return StackReader(ds, workers)
     return None
 

@@ -8,6 +8,7 @@ ones make every tile count as unfinished (their done markers no longer match).
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import shutil
 import time
 from collections.abc import Callable
@@ -19,7 +20,7 @@ from numpy.typing import NDArray
 from service.inprocess import run_in_process
 from service.previews import PREVIEW_INPUTS, PREVIEWS, render
 from service.progress import ProgressFn
-from service.settings import Settings, cluster_kind
+from service.settings import Settings, cluster_settings, runs_in_process
 from service.timings import Timings
 from storage.datasets import Dataset
 from storage.errors import ConflictError, InvalidInputError, StoreError
@@ -106,6 +107,7 @@ def _check_same_inputs(store: JobStore, ds: Dataset, spec: JobSpec, out: Path, c
     fp = ds.fingerprint()
     same_files = fp is not None and fp == store.source_fingerprint and store.input_identity() is not None
     if not (same_files and (uploaded.all() or not copy_images)):
+        new: dict[int, bytes] = {}
         for i in range(ds.k):
             if same_files and uploaded[i]:
                 continue
@@ -116,7 +118,8 @@ def _check_same_inputs(store: JobStore, ds: Dataset, spec: JobSpec, out: Path, c
             if copy_images and not uploaded[i]:
                 store.write_image(i, img)
             elif not known[i]:
-                store.record_digest(i, d)
+                new[i] = d
+        store.record_digests(new)
     state = store.mask_state()
     if ds.mask is None:
         if state != "default":
@@ -125,11 +128,6 @@ def _check_same_inputs(store: JobStore, ds: Dataset, spec: JobSpec, out: Path, c
         store.write_mask(ds.mask)
     elif state == "default" or array_digest(np.ascontiguousarray(ds.mask, dtype=bool)) != stored[s.k]:
         raise differ("the masks")
-
-
-def cluster_settings(scheduler: str = "", workers: int = 2, cluster: str = "") -> Settings:
-    """The ``MAXFS_*`` settings with the cluster the command line chose (see :mod:`service.cluster`)."""
-    return Settings().model_copy(update={"scheduler": scheduler, "workers": workers, "cluster": cluster})
 
 
 async def _run(out: Path, settings: Settings, on_progress: ProgressFn | None) -> JobRecord:
@@ -194,67 +192,30 @@ def run_folder(
     its done markers. Results are bit-identical either way. ``prefetch``: the stack, being
     decoded since the folder was opened (used in process, cancelled otherwise).
     """
-    try:
-        return _run_folder(
-            ds,
-            Path(out),
-            params,
-            overwrite,
-            scheduler,
-            workers,
-            cluster,
-            in_process_bytes,
-            on_note,
-            on_progress,
-            timings or Timings(),
-            prefetch,
-        )
-    finally:
-        if prefetch is not None:
-            prefetch.cancel()  # a refused store or an interrupt: the decoding threads stop too
-
-
-def _run_folder(
-    ds: Dataset,
-    out: Path,
-    params: JobParams,
-    overwrite: bool,
-    scheduler: str,
-    workers: int,
-    cluster: str,
-    in_process_bytes: int,
-    on_note: Callable[[str], None] | None,
-    on_progress: ProgressFn | None,
-    tm: Timings,
-    prefetch: StackReader | None,
-) -> tuple[JobStore, JobRecord]:
-    stack_bytes = ds.k * ds.height * ds.width * (ds.channels or 1) * np.dtype(ds.dtype).itemsize
-    settings = cluster_settings(scheduler, workers, cluster)
-    in_process = cluster_kind(settings) == "local" and stack_bytes <= in_process_bytes
-    with tm.phase("open or create the store"):
-        store, note = ingest(ds, out, params, overwrite=overwrite, copy_images=not in_process)
-    if note and on_note:
-        on_note(note)
-    if store.done_grid().all() and (out / "previews").is_dir():
-        if prefetch is not None:
-            prefetch.cancel()
-        return store, load_record(out)  # finished earlier with these inputs and parameters
-    if in_process:
-        images = None
-        if not store.uploaded().all():  # the stack stays in memory; only its digests are stored
-            with tm.phase("read images"):
-                images = read_stack(ds, store, workers, prefetch)
-        elif prefetch is not None:
-            prefetch.cancel()
-        rec = run_in_process(out, threads=workers, images=images, on_progress=on_progress, timings=tm.add)
-    else:
-        if prefetch is not None:
-            prefetch.cancel()
-        with tm.phase("cluster run (start, tiles, stop)"):
-            rec = asyncio.run(_run(out, settings, on_progress))
-    if rec.state is JobState.DONE:
-        finish(out, tm)
-    return store, rec
+    out = Path(out)
+    tm = timings or Timings()
+    # a refused store, an interrupt or a run that did not need them: the decoding threads stop too
+    with prefetch or contextlib.nullcontext():
+        settings = cluster_settings(scheduler, workers, cluster)
+        in_process = runs_in_process(settings, ds.nbytes, in_process_bytes)
+        with tm.phase("open or create the store"):
+            store, note = ingest(ds, out, params, overwrite=overwrite, copy_images=not in_process)
+        if note and on_note:
+            on_note(note)
+        if store.done_grid().all() and (out / "previews").is_dir():
+            return store, load_record(out)  # finished earlier with these inputs and parameters
+        if in_process:
+            images = None
+            if not store.uploaded().all():  # the stack stays in memory; only its digests are stored
+                with tm.phase("read images"):
+                    images = read_stack(ds, store, workers, prefetch)
+            rec = run_in_process(out, threads=workers, images=images, on_progress=on_progress, timings=tm.add)
+        else:
+            with tm.phase("cluster run (start, tiles, stop)"):
+                rec = asyncio.run(_run(out, settings, on_progress))
+        if rec.state is JobState.DONE:
+            finish(out, tm)
+        return store, rec
 
 
 def read_stack(ds: Dataset, store: JobStore, threads: int, reader: StackReader | None = None) -> NDArray:

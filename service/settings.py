@@ -141,3 +141,14 @@ def cluster_kind(settings: Settings) -> str:
             "to e.g. tls://10.0.0.5:8786"
         )
     return kind
+
+
+def cluster_settings(scheduler: str = "", workers: int = 2, cluster: str = "") -> Settings:
+    """The ``MAXFS_*`` settings with the cluster the command line chose (see :mod:`service.cluster`)."""
+    return Settings().model_copy(update={"scheduler": scheduler, "workers": workers, "cluster": cluster})
+
+
+def runs_in_process(settings: Settings, nbytes: int, limit: int) -> bool:
+    """Whether ``maxfs run`` solves a stack of ``nbytes`` in its own process (threads, the stack
+    in memory): on the ``local`` cluster and at most ``limit`` bytes (``MAXFS_IN_PROCESS_BYTES``)."""
+    return cluster_kind(settings) == "local" and nbytes <= limit

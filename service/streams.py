@@ -91,13 +91,6 @@ def npy_size(meta: ArrayMeta) -> int:
     return len(npy_header(meta.shape, meta.dtype)) + meta.nbytes
 
 
-def npy_bytes(arr: NDArray) -> bytes:
-    """A whole (small) array as the bytes of an NPY file."""
-    buf = io.BytesIO()
-    np.save(buf, arr)
-    return buf.getvalue()
-
-
 class _Sink:
     """A write-only, unseekable file that collects what :mod:`zipfile` writes."""
 

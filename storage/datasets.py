@@ -50,6 +50,11 @@ class Dataset:
     #: re-run recognise unchanged inputs without decoding them again.
     files: tuple[Path, ...] = ()
 
+    @property
+    def nbytes(self) -> int:
+        """Bytes of the whole stack in memory."""
+        return self.k * self.height * self.width * (self.channels or 1) * np.dtype(self.dtype).itemsize
+
     def fingerprint(self) -> str | None:
         """Digest of the listed files' paths, sizes and modification times (None without files)."""
         if not self.files:

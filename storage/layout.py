@@ -479,25 +479,17 @@ class JobStore:
             return "incomplete"
         return "default" if not any(d) else "complete"
 
-    def record_digest(self, i: int, digest: bytes) -> None:
-        """Record image ``i``'s digest without storing its pixels (a run that keeps the stack
-        in memory): the input identity holds, ``uploaded[i]`` stays False."""
-        self.record_digests({i: digest})
-
     def record_digests(self, digests: Mapping[int, bytes]) -> None:
-        """:meth:`record_digest` for many images in one write (a chunk per image, written
-        together: one at a time cost 4 ms each)."""
+        """Record images' digests without storing their pixels (a run that keeps the stack in
+        memory): the input identity holds, ``uploaded[i]`` stays False. One write for all (a
+        chunk per image, written together: one at a time cost 4 ms each)."""
         if not digests:
             return
         for i in digests:
             self.check_index(i)
         idx = sorted(digests)
         rows = np.stack([np.frombuffer(digests[i], np.uint8) for i in idx])
-        arr = self.group["input_digests"]
-        if idx == list(range(idx[0], idx[-1] + 1)):
-            arr[idx[0] : idx[-1] + 1] = rows
-        else:
-            arr.set_orthogonal_selection((np.asarray(idx), slice(None)), rows)
+        self.group["input_digests"].set_orthogonal_selection((np.asarray(idx), slice(None)), rows)
 
     def known_images(self) -> NDArray[np.bool_]:
         """Images whose digest is recorded (stored, or digested by an in-memory run)."""
@@ -666,14 +658,16 @@ class JobStore:
         return np.asarray(self.group[name][region])
 
     def write_depth(self, depth: NDArray[np.floating], attrs: dict[str, Any]) -> None:
-        """Store ``depth`` (H, W) as float32, chunked like the mask, with ``attrs`` (replacing one)."""
+        """Store ``depth`` (H, W) as its row of the output table says, chunked like the mask,
+        with ``attrs`` (replacing one)."""
+        o = OUTPUTS_BY_NAME["depth"]
         arr = self.group.create_array(
-            "depth",
+            o.name,
             shape=depth.shape,
             chunks=tuple(int(c) for c in self.group["mask"].chunks),
-            dtype="float32",
-            fill_value=np.nan,
-            dimension_names=("y", "x"),
+            dtype=o.dtype,
+            fill_value=o.fill,
+            dimension_names=o.dims,
             overwrite=True,
         )
         arr[...] = depth

@@ -279,4 +279,3 @@ SOLVE_OPTIONS: tuple[Option, ...] = (
     Option("dequantize", "bool", "integer input: read v > 0 as v + 0.5 (robust: true)"),
     Option("fallback", "bool", "least squares where Max-FS gives no normal (robust: true)"),
 )
-OPTIONS_BY_NAME: dict[str, Option] = {o.name: o for o in SOLVE_OPTIONS}

@@ -44,3 +44,9 @@ class StackReader:
     def cancel(self) -> None:
         """Stop decoding (images not started are skipped) and wait for the ones running."""
         self._pool.shutdown(wait=True, cancel_futures=True)
+
+    def __enter__(self) -> StackReader:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.cancel()
