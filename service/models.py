@@ -12,9 +12,9 @@ so a model never drops what a client relies on. :func:`status_body` makes that b
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Annotated, Any, Literal, TypeVar
+from typing import TYPE_CHECKING, Any, Literal
 
-from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, create_model
+from pydantic import BaseModel, ConfigDict, Field, create_model, model_validator
 
 from storage.options import DTYPES, SOLVE_OPTIONS, Option
 from storage.records import JobState
@@ -123,25 +123,16 @@ class Health(BaseModel):
     auth: bool = Field(description="whether /jobs routes need a bearer token")
 
 
-def _no_bool(value: Any) -> Any:
-    """JSON ``true`` is not the number 1 (pydantic's lax mode would read it so)."""
-    if isinstance(value, bool):
-        raise ValueError("a number, not true or false")
-    return value
+#: ``POST /jobs`` fields that hold numbers (or lists of them), and those that hold true/false.
+NUMBER_FIELDS = frozenset(
+    {"k", "height", "width", "channels", "lights", "intensities"}
+    | {o.name for o in SOLVE_OPTIONS if o.kind not in ("bool", "choice")}
+)
+FLAG_FIELDS = frozenset(o.name for o in SOLVE_OPTIONS if o.kind == "bool")
 
 
-def _only_bool(value: Any) -> Any:
-    """JSON ``0``/``1`` or ``"yes"`` is not a flag (pydantic's lax mode would read it so)."""
-    if not isinstance(value, bool):
-        raise ValueError("true or false")
-    return value
-
-
-T = TypeVar("T")
-#: A number field that refuses booleans; the JSON schema is that of ``T``.
-Number = Annotated[T, BeforeValidator(_no_bool)]
-#: A true/false field that refuses numbers and strings.
-Flag = Annotated[bool, BeforeValidator(_only_bool)]
+def _holds_bool(value: Any) -> bool:
+    return isinstance(value, bool) or (isinstance(value, list) and any(_holds_bool(v) for v in value))
 
 
 class JobShape(BaseModel):
@@ -149,15 +140,25 @@ class JobShape(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    k: Number[int] = Field(description="number of images (at least 3)")
-    height: Number[int] = Field(description="image height in pixels")
-    width: Number[int] = Field(description="image width in pixels")
-    channels: Number[Literal[1, 3]] = Field(1, description="1 = grey, 3 = RGB")
+    @model_validator(mode="before")
+    @classmethod
+    def _true_is_no_number(cls, data: Any) -> Any:
+        """JSON ``true`` is not the number 1, nor ``0`` a flag (pydantic's lax mode reads them so)."""
+        if isinstance(data, dict):
+            for name, value in data.items():
+                if name in NUMBER_FIELDS and _holds_bool(value):
+                    raise ValueError(f"{name}: a number, not true or false")
+                if name in FLAG_FIELDS and value is not None and not isinstance(value, bool):
+                    raise ValueError(f"{name}: true or false, got {value!r}")
+        return data
+
+    k: int = Field(description="number of images (at least 3)")
+    height: int = Field(description="image height in pixels")
+    width: int = Field(description="image width in pixels")
+    channels: Literal[1, 3] = Field(1, description="1 = grey, 3 = RGB")
     dtype: Literal[DTYPES] = "uint8"  # type: ignore[valid-type]
-    lights: list[list[Number[float]]] = Field(
-        description="k unit light directions (x right, y up, z toward camera)"
-    )
-    intensities: list[Number[float]] | list[list[Number[float]]] | None = Field(
+    lights: list[list[float]] = Field(description="k unit light directions (x right, y up, z toward camera)")
+    intensities: list[float] | list[list[float]] | None = Field(
         None, description="light intensities: k values, or k x channels"
     )
     label: str | None = Field(
@@ -169,11 +170,11 @@ class JobShape(BaseModel):
 
 #: Pydantic types of the kinds of :class:`storage.options.Option`.
 _KINDS: dict[str, Any] = {
-    "float": Number[float],
-    "int": Number[int],
-    "bool": Flag,
-    "float|auto": Number[float] | Literal["auto"],
-    "int|auto": Number[int] | Literal["auto"],
+    "float": float,
+    "int": int,
+    "bool": bool,
+    "float|auto": float | Literal["auto"],
+    "int|auto": int | Literal["auto"],
 }
 
 

@@ -249,7 +249,7 @@ SOLVE_OPTIONS: tuple[Option, ...] = (
         "choice",
         "exact (branch and bound, proves each optimum), milp (the paper's MILP) or l2 (least squares)",
         "exact",
-        tuple(Solver),
+        tuple(s.value for s in Solver),
     ),
     Option("tile", "int|auto", "tile edge in pixels (8-4096), or auto: from k and the task memory", "auto"),
     Option("shadow", "float", "intensities <= this are shadows (default: the model's, eps or eps/3)"),
@@ -269,7 +269,7 @@ SOLVE_OPTIONS: tuple[Option, ...] = (
         "robust (dequantised input, response and eps estimated, brightest 30% of each pixel's "
         "images rejected, a fallback fit) or paper (Yu, Seo, Lee 2010 as published)",
         Model.ROBUST.value,
-        tuple(Model),
+        tuple(m.value for m in Model),
     ),
     Option("response", "float|auto", "g of I = (L.n)^g, or auto (robust: auto; paper: 1)"),
     Option("eps_rel", "float", "tolerance eps + eps_rel * I (default 0)"),
