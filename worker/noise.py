@@ -42,6 +42,7 @@ and mask only, never on the tile grid, so every path gets the same numbers.
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -179,6 +180,13 @@ def response_criterion(
     return float(np.median(per_pixel)) if per_pixel.size else np.inf
 
 
+def _on_threads(criterion: Callable[[float], float], xs: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``criterion`` at each of ``xs``: independent candidates whose large numpy operations
+    release the GIL, so on threads (each value is computed exactly as on one thread)."""
+    with ThreadPoolExecutor(min(len(xs), os.cpu_count() or 1, 4), thread_name_prefix="maxfs-g") as pool:
+        return np.array(list(pool.map(criterion, xs)))
+
+
 def select_response(
     I: NDArray[np.floating],
     usable: NDArray[np.bool_],
@@ -195,10 +203,7 @@ def select_response(
     rows = _rows(usable, sample, seed)
     Is, sel = np.maximum(np.asarray(I, np.float64)[rows], 0.0), usable[rows]
     x = np.log(np.asarray(grid, dtype=np.float64))
-    # the candidates are independent, and numpy's large operations release the GIL: on threads
-    # (each value is computed exactly as on one thread)
-    with ThreadPoolExecutor(min(len(x), os.cpu_count() or 1, 4), thread_name_prefix="maxfs-g") as pool:
-        crit = np.array(list(pool.map(lambda v: response_criterion(Is, sel, L, float(np.exp(v))), x)))
+    crit = _on_threads(lambda v: response_criterion(Is, sel, L, float(np.exp(v))), x)
     j = int(np.argmin(crit))
     if refine > 2:
         fine = np.linspace(x[max(j - 1, 0)], x[min(j + 1, len(x) - 1)], refine)
@@ -208,8 +213,7 @@ def select_response(
             key = round(float(v), 12)
             return known[key] if key in known else response_criterion(Is, sel, L, float(np.exp(v)))
 
-        with ThreadPoolExecutor(min(refine, os.cpu_count() or 1, 4), thread_name_prefix="maxfs-g") as pool:
-            crit = np.array(list(pool.map(at, fine)))
+        crit = _on_threads(at, fine)
         x = fine
         j = int(np.argmin(crit))
     best = x[j]
