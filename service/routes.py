@@ -21,7 +21,7 @@ from service.jobs import TEMP_PREFIX, JobManager
 from service.models import PARTIAL_HEADER, CreateJob, solve_options, status_body
 from service.previews import HTTP_PREVIEWS, inputs_of
 from service.settings import Settings
-from service.streams import npy_pieces, npy_size, preview_png, zip_pieces
+from service.streams import job_still_there, npy_pieces, npy_size, preview_png, zip_pieces
 from service.uploads import Uploads
 from storage.errors import ConflictError, NotFoundError, PayloadTooLargeError
 from storage.layout import JobSpec, JobStore
@@ -285,8 +285,7 @@ class JobRoutes:
             if cached.exists():  # made while this request waited
                 return cached.read_bytes()
             png = await asyncio.to_thread(preview_png, store, name, inputs, self.s.preview_max_edge)
-            if not folder.exists():  # deleted while it was rendered: what was read may be fill values
-                raise NotFoundError(f"job {job_id} was deleted while its preview was made")
+            job_still_there(folder)  # deleted while it was rendered: what was read may be fill values
             for old in folder.glob(f"{TEMP_PREFIX}preview-{name}-*.png"):
                 old.unlink(missing_ok=True)
             tmp = folder / f"{TEMP_PREFIX}preview-{name}-{tag}.part"

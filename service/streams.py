@@ -63,12 +63,12 @@ def _bands(
             yield from _bands(shape[1:], chunks[1:], itemsize, limit, (*prefix, i))
 
 
-def _still_there(folder: Path) -> None:
+def job_still_there(folder: Path) -> None:
     """Stop an answer whose job was deleted while it was sent: the store's chunks are gone, and
     Zarr would go on with fill values. Raised inside a streamed answer, this ends the
     connection before the declared length, so the client sees a cut download, not a wrong one."""
     if not folder.exists():
-        raise NotFoundError(f"the job at {folder.name} was deleted while it was being downloaded")
+        raise NotFoundError(f"the job at {folder.name} was deleted while its answer was being made")
 
 
 def npy_pieces(store: JobStore, name: str, limit: int = PIECE) -> Iterator[bytes]:
@@ -80,9 +80,9 @@ def npy_pieces(store: JobStore, name: str, limit: int = PIECE) -> Iterator[bytes
         try:
             band = np.ascontiguousarray(store.read_array(name, sel), dtype=dtype).tobytes()
         except (KeyError, FileNotFoundError):
-            _still_there(store.path)
+            job_still_there(store.path)
             raise
-        _still_there(store.path)  # checked after the read too: a chunk read once it was gone is fill
+        job_still_there(store.path)  # checked after the read too: a chunk read once it was gone is fill
         yield band
 
 
@@ -118,7 +118,7 @@ def zip_pieces(
 ) -> Iterator[bytes]:
     """A zip archive (stored, ZIP64 where needed) of ``files`` = (path, name), made while it is
     sent: at most about one ``piece`` is held, nothing is written to disk. With ``folder`` (the
-    job's), the answer stops if the job is deleted meanwhile (:func:`_still_there`)."""
+    job's), the answer stops if the job is deleted meanwhile (:func:`job_still_there`)."""
     sink = _Sink()
     with zipfile.ZipFile(sink, "w", zipfile.ZIP_STORED, allowZip64=True) as zf:  # type: ignore[arg-type]
         for path, name in files:
@@ -127,7 +127,7 @@ def zip_pieces(
                 src = open(path, "rb")
             except FileNotFoundError:  # removed meanwhile (a temp file, a rewritten chunk)
                 if folder is not None:
-                    _still_there(folder)
+                    job_still_there(folder)
                 continue
             info.compress_type = zipfile.ZIP_STORED
             with src, zf.open(info, "w", force_zip64=info.file_size > (1 << 30)) as dst:
@@ -136,7 +136,7 @@ def zip_pieces(
                     if sink.size >= piece:
                         yield sink.take()
             if folder is not None:
-                _still_there(folder)
+                job_still_there(folder)
             if sink.size >= piece:
                 yield sink.take()
     yield sink.take()
