@@ -322,6 +322,77 @@ async def _start_slurm(settings: Settings, log_dir: Path | None) -> DaskCluster:
 # -- the shared-filesystem check -------------------------------------------------------------------
 
 
+#: Seconds between two log lines while a store check waits for a worker.
+PROBE_REPORT_SECONDS = 30.0
+
+
+def _task_on_scheduler(dask_scheduler: Any, key: str) -> dict[str, Any]:
+    """On the scheduler: where task ``key`` stands, and how busy each worker is."""
+    ts = dask_scheduler.tasks.get(key)
+    return {
+        "state": None if ts is None else ts.state,
+        "on": None if ts is None or ts.processing_on is None else ts.processing_on.address,
+        "workers": {w.address: len(w.processing) for w in dask_scheduler.workers.values()},
+    }
+
+
+async def _probe_answer(client: Client, job_dir: Path, name: str, nonce: str, job_id: str) -> str | None:
+    """Run :func:`probe_store` on a worker and return its answer, however long a worker takes
+    to come (a SLURM worker job may wait in the queue). Every ``PROBE_REPORT_SECONDS`` the log
+    says where the check stands on the scheduler; a check the scheduler has never heard of (its
+    submission was lost) is submitted again."""
+    attempt, waited = 0, 0.0
+    while True:
+        key = f"maxfs-probe-{job_id}-{nonce[:8]}-{attempt}"
+        fut = client.submit(probe_store, str(job_dir), name, nonce, key=key, pure=False)
+        waiter = asyncio.ensure_future(result(fut))
+        try:
+            while True:
+                done, _ = await asyncio.wait({waiter}, timeout=PROBE_REPORT_SECONDS)
+                if done:
+                    return waiter.result()
+                waited += PROBE_REPORT_SECONDS
+                try:
+                    where = await asyncio.wait_for(client.run_on_scheduler(_task_on_scheduler, key=key), 10)
+                except Exception as e:  # the scheduler did not answer: say so, keep waiting
+                    where = {"state": "unknown", "error": f"{type(e).__name__}: {e}"}
+                log.warning(
+                    "job %s: the store check has waited %g s for a worker (client %s; on the scheduler: %s)",
+                    job_id,
+                    waited,
+                    client.status,
+                    where,
+                )
+                if where.get("state") is None:  # the scheduler never got it: submit it again
+                    break
+        finally:
+            waiter.cancel()
+            fut.release()
+        attempt += 1
+
+
+async def result(fut: Any) -> Any:
+    """The result of a Dask future, fetched so that cancelling the caller cancels only the caller.
+
+    The client batches concurrent result fetches into one shared request, and awaiting it
+    directly lets a cancelled waiter cancel that request for every other waiter: cancelling one
+    job's run made another job's fetch raise ``CancelledError`` (that job then stayed queued
+    with nothing running it). Shielded, the shared fetch finishes for the others.
+    """
+    fetch = asyncio.ensure_future(_fetch(fut))
+    fetch.add_done_callback(_retrieved)  # a caller cancelled meanwhile never reads its outcome
+    return await asyncio.shield(fetch)
+
+
+async def _fetch(fut: Any) -> Any:
+    return await fut
+
+
+def _retrieved(task: asyncio.Future) -> None:
+    if not task.cancelled():
+        task.exception()
+
+
 def probe_store(job_dir: str, name: str, token: str) -> str | None:
     """On a worker: read the probe file ``name`` in ``job_dir`` and answer beside it.
 
@@ -357,13 +428,7 @@ async def check_store_visible(client: Client, job_dir: Path, job_id: str) -> Non
     probe, answer = job_dir / name, job_dir / f"{name}.answer"
     probe.write_text(nonce)
     try:
-        fut = client.submit(
-            probe_store, str(job_dir), name, nonce, key=f"maxfs-probe-{job_id}-{nonce[:8]}", pure=False
-        )
-        try:
-            seen = await fut
-        finally:
-            fut.release()
+        seen = await _probe_answer(client, job_dir, name, nonce, job_id)
         if seen is None and not (answer.is_file() and answer.read_text() == nonce):
             seen = "a worker wrote its answer where this process cannot read it"
         if seen is not None:

@@ -105,7 +105,8 @@ class DaskCluster:
             for i in range(n_workers):
                 self.add_worker(i)
             with Client(self.address, timeout=60) as c:
-                c.wait_for_workers(n_workers, timeout=120)
+                if n_workers:  # none: a scheduler alone, its workers added later
+                    c.wait_for_workers(n_workers, timeout=120)
         except BaseException:  # nothing is left running when the cluster does not come up
             self.close()
             raise

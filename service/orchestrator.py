@@ -19,7 +19,7 @@ from pathlib import Path
 from distributed import Client, as_completed
 from distributed.comm.core import CommClosedError
 
-from service.cluster import check_store_visible
+from service.cluster import check_store_visible, result
 from service.fairness import BATCH as FAIR_BATCH
 from service.fairness import FairShare
 from service.progress import ProgressFn, RunCounter, count_finished, resolve_eps
@@ -73,6 +73,7 @@ async def run_job(
     store.clear_cancel()
     rec.state, rec.error, rec.finished_at = JobState.QUEUED, None, None
     save()
+    log.info("job %s of %s queued: checking that a worker sees its store", rec.id, user or "-")
     futures: dict[str, object] = {}
     held = 0  # ranks of this job's tiles in its user's backlog (service.fairness), not yet released
     try:
@@ -82,8 +83,8 @@ async def run_job(
         if params.eps is None:
             key = f"maxfs-eps-{rec.id}-{uuid.uuid4().hex[:8]}"
             try:
-                eps = await client.submit(
-                    estimate_store_eps, str(job_dir), key=key, pure=False, retries=retries
+                eps = await result(
+                    client.submit(estimate_store_eps, str(job_dir), key=key, pure=False, retries=retries)
                 )
             except Exception as e:
                 raise RuntimeError(
@@ -96,6 +97,7 @@ async def run_job(
         await asyncio.to_thread(count_finished, rec, store)
         rec.state, rec.started_at, rec.pixel_rate = JobState.RUNNING, time.time(), None
         save()
+        log.info("job %s running: %d of %d tiles to do", rec.id, int((~done).sum()), done.size)
         digest, nonce = params.digest(), uuid.uuid4().hex[:8]
         index_of: dict[str, int] = {}
         # largest masked-pixel count first: work, not tile count, is what the workers share
@@ -138,7 +140,7 @@ async def run_job(
                 nxt += 1
             futures.pop(fut.key, None)
             try:
-                out: TileOutcome = await fut
+                out: TileOutcome = await result(fut)
             except Exception as e:  # a tile failed after its retries, or the cluster went away
                 # a closed comm is the client's link to the scheduler (tile code never raises it);
                 # the client's status may not say so yet
@@ -185,22 +187,36 @@ async def run_job(
                 log.exception("job %s: previews or depth failed; the results stand", rec.id)
         rec.state, rec.finished_at = JobState.DONE, time.time()
         save()
+        log.info("job %s done", rec.id)
         return rec
     except JobCancelledError:
         await _drop(client, futures)
         rec.state, rec.finished_at = JobState.CANCELLED, time.time()
         save()
+        log.info("job %s cancelled", rec.id)
         return rec
     except asyncio.CancelledError:
         await _drop(client, futures)
+        task = asyncio.current_task()
+        if task is not None and not task.cancelling():
+            # nobody stopped this run: a library raised CancelledError (e.g. a shared result fetch
+            # cancelled by another waiter); ending quietly would leave the job active with nothing
+            # running it
+            rec.state, rec.finished_at = JobState.FAILED, time.time()
+            rec.error = "internal error: a Dask result fetch was cancelled; start the job again to resume it"
+            save()
+            log.error("job %s: %s", rec.id, rec.error)
+            return rec
         if store.cancel_requested:
             rec.state, rec.finished_at = JobState.CANCELLED, time.time()
         save()  # without a cancel flag: shutdown; the active state makes the next start resume
+        log.info("job %s: its run was stopped (%s)", rec.id, rec.state.value)
         raise
     except Exception as e:
         await _drop(client, futures)
         rec.state, rec.error, rec.finished_at = JobState.FAILED, str(e), time.time()
         save()
+        log.warning("job %s failed: %s", rec.id, e)
         return rec
     finally:
         if fair is not None and held:

@@ -148,3 +148,67 @@ def test_embedded_cluster_serves_a_dashboard_only_when_asked() -> None:
                 return (await h.get(f"http://127.0.0.1:{port}/health")).status_code
 
     assert asyncio.run(go()) == 200
+
+
+def test_store_check_waits_for_a_worker_and_says_where_it_stands(
+    procs, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A job's store check on a cluster with no worker yet (a SLURM worker job still queued)
+    waits, logs where the check stands on the scheduler, and finishes once a worker joins."""
+    import logging
+
+    from distributed import Client
+
+    import service.cluster as cluster
+
+    monkeypatch.setattr(cluster, "PROBE_REPORT_SECONDS", 0.5)
+    dask = procs.cluster(n_workers=0)
+    job_dir = tmp_path / "job"
+    job_dir.mkdir()
+
+    async def go() -> None:
+        async with Client(dask.address, asynchronous=True) as c:
+            check = asyncio.ensure_future(cluster.check_store_visible(c, job_dir, "j1"))
+            await asyncio.sleep(1.6)
+            assert not check.done()
+            dask.add_worker(0)
+            await asyncio.wait_for(check, 60)  # no StoreError: the worker saw the store
+
+    with caplog.at_level(logging.WARNING, logger="maxfs.cluster"):
+        asyncio.run(go())
+    waits = [r.getMessage() for r in caplog.records if "store check has waited" in r.getMessage()]
+    first = waits[0] if waits else ""
+    assert "'state': 'queued'" in first or "'state': 'no-worker'" in first, waits
+    assert "'workers': {}" in first, waits
+    assert not list(job_dir.iterdir()), "the probe files are removed"
+
+
+@pytest.mark.parametrize("cancelled", ["first", "second"])
+def test_cancelling_one_result_fetch_leaves_the_others(procs, cancelled: str) -> None:
+    """The client batches concurrent result fetches into one request; cancelling one waiter
+    (a job's run, cancelled) must not cancel the fetch of another (a second job's store check
+    or tile result: it then raised CancelledError and that job stayed queued forever)."""
+    import operator
+
+    from distributed import Client
+
+    from service.cluster import result
+
+    dask = procs.cluster(n_workers=1)
+
+    async def go() -> None:
+        async with Client(dask.address, asynchronous=True) as c:
+            for _ in range(5):  # the race is per fetch: try a few
+                futs = [c.submit(operator.add, i, 1, pure=False) for i in range(2)]
+                while not all(f.done() for f in futs):
+                    await asyncio.sleep(0.01)
+                waiting = [asyncio.ensure_future(result(f)) for f in futs]
+                for _ in range(5):  # both attach to the same fetch before it is answered
+                    await asyncio.sleep(0)
+                victim, other = waiting if cancelled == "first" else waiting[::-1]
+                victim.cancel()
+                assert await asyncio.wait_for(other, 30) == (1 if other is waiting[0] else 2)
+                with pytest.raises(asyncio.CancelledError):
+                    await victim
+
+    asyncio.run(go())
