@@ -322,10 +322,29 @@ def cmd_serve(args: argparse.Namespace) -> int:
         host=settings.host,
         port=settings.port,
         log_level="info",
+        log_config=_serve_logging(),
         limit_concurrency=settings.max_connections,  # beyond: 503 at once, not a hung accept queue
         timeout_keep_alive=5,
     )
     return 0
+
+
+def _serve_logging() -> dict:
+    """uvicorn's logging, plus the server's own ``maxfs.*`` loggers at INFO with a time stamp
+    (job starts and ends, tile failures: what an operator reads when a job seems stuck)."""
+    import copy
+
+    from uvicorn.config import LOGGING_CONFIG
+
+    cfg = copy.deepcopy(LOGGING_CONFIG)
+    cfg["formatters"]["maxfs"] = {"format": "%(asctime)s %(levelname)s %(name)s: %(message)s"}
+    cfg["handlers"]["maxfs"] = {
+        "formatter": "maxfs",
+        "class": "logging.StreamHandler",
+        "stream": "ext://sys.stderr",
+    }
+    cfg["loggers"]["maxfs"] = {"handlers": ["maxfs"], "level": "INFO", "propagate": False}
+    return cfg
 
 
 def _client(args: argparse.Namespace):
