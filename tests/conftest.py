@@ -33,11 +33,22 @@ import numpy as np
 import pytest
 
 from tests import data
-from tests.procs import DaskCluster, InProcessServer, Procs, Server
+from tests.procs import DaskCluster, InProcessServer, Procs, Server, log_tails
 from worker import synthetic
 from worker.solve import Solution, solve
 
 # -- processes ---------------------------------------------------------------------------------
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo) -> Iterator[None]:
+    """A failing test's report ends with the tails of the server, scheduler and worker logs
+    of what is running (CI keeps only what pytest prints)."""
+    outcome = yield
+    report = outcome.get_result()
+    if report.failed and call.when in ("setup", "call"):
+        for path, tail in log_tails():
+            report.sections.append((f"log {path}", tail))
 
 
 @pytest.fixture

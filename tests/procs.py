@@ -20,6 +20,24 @@ from service.harness import BIN, DaskCluster, Server, free_port, poll_until
 __all__ = ["BIN", "DaskCluster", "InProcessServer", "Procs", "Server", "free_port", "poll_until"]
 
 
+#: every Procs not closed yet, oldest first
+LIVE: list[Procs] = []
+
+
+def log_tails(lines: int = 40) -> list[tuple[str, str]]:
+    """``(path, last lines)`` of every log file of what live :class:`Procs` started, for the
+    report of a failing test (on CI, the files go with the machine)."""
+    out = []
+    for p in LIVE:
+        for f in dict.fromkeys(p.logs):
+            try:
+                text = f.read_text(errors="replace").splitlines()[-lines:]
+            except OSError:
+                continue
+            out.append((str(f), "\n".join(text)))
+    return out
+
+
 class InProcessServer:
     """The app under a real uvicorn in a thread of this process (so ``tracemalloc`` sees it)."""
 
@@ -53,11 +71,15 @@ class Procs:
     def __init__(self, tmp: Path) -> None:
         self.tmp = Path(tmp)
         self._started: list[Callable[[], None]] = []  # how to stop each, oldest first
+        #: the log files of what was started (their tails go into a failing test's report)
+        self.logs: list[Path] = []
+        LIVE.append(self)
 
     def cluster(self, n_workers: int = 2, port: int | None = None, logs: Path | None = None) -> DaskCluster:
         """``dask scheduler`` and ``n_workers`` single-threaded workers on loopback."""
         c = DaskCluster(logs or self.tmp, n_workers=n_workers, port=port)
         self._started.append(c.close)
+        self.logs += [c.logs / "scheduler.log", *(c.logs / f"worker{i}.log" for i in range(n_workers))]
         return c
 
     def server(
@@ -74,6 +96,7 @@ class Procs:
         after 30 s)."""
         s = Server(data_dir or self.tmp / "data", scheduler, logs or self.tmp, **kw)
         self._started.append(s.stop if graceful else s.kill)
+        self.logs.append(s.log)
         return s
 
     def inprocess(self, app: Any) -> InProcessServer:
@@ -82,6 +105,8 @@ class Procs:
         return s
 
     def close(self) -> None:
+        if self in LIVE:
+            LIVE.remove(self)
         errors: list[BaseException] = []
         while self._started:
             stop = self._started.pop()
