@@ -81,6 +81,7 @@ class ProgressCounts:
     solved: int  # masked pixels in finished tiles that got a normal
     certified: int  # ... whose optimum was proved
 
+
 FORMAT_VERSION = 3
 #: The Zarr group's folder inside a job folder.
 GROUP_DIR = "results.zarr"
@@ -283,6 +284,7 @@ class JobStore:
             dtype=spec.dtype,
             fill_value=0,
             dimension_names=DIMS["images"] + (("channel",) if C is not None else ()),
+            attributes=DESCRIPTIONS["images"],
         )
         g.create_array(
             "uploaded",
@@ -291,16 +293,30 @@ class JobStore:
             dtype="bool",
             fill_value=False,
             dimension_names=DIMS["uploaded"],
+            attributes=DESCRIPTIONS["uploaded"],
         )
-        g.create_array("lights", data=spec.lights, dimension_names=DIMS["lights"])
-        g.create_array("intensities", data=spec.intensities, dimension_names=DIMS["intensities"])
+        g.create_array(
+            "lights", data=spec.lights, dimension_names=DIMS["lights"], attributes=DESCRIPTIONS["lights"]
+        )
+        g.create_array(
+            "intensities",
+            data=spec.intensities,
+            dimension_names=DIMS["intensities"],
+            attributes=DESCRIPTIONS["intensities"],
+        )
         for o in OUTPUT_TABLE:
             if o.made == "after" or not o.exists(C):
                 continue  # depth is made after the run (service.research); albedo_rgb needs colour
             shape = o.shape(k, H, W, C)
             chunks = tuple({"y": tc[0], "x": tc[1]}.get(d, n) for d, n in zip(o.dims, shape, strict=True))
             g.create_array(
-                o.name, shape=shape, chunks=chunks, dtype=o.dtype, fill_value=o.fill, dimension_names=o.dims
+                o.name,
+                shape=shape,
+                chunks=chunks,
+                dtype=o.dtype,
+                fill_value=o.fill,
+                dimension_names=o.dims,
+                attributes=DESCRIPTIONS[o.name],
             )
         g.create_array(
             "done",
@@ -309,6 +325,7 @@ class JobStore:
             dtype="int32",
             fill_value=0,
             dimension_names=DIMS["done"],
+            attributes=DESCRIPTIONS["done"],
         )
         g.create_array(
             "tile_stats",
@@ -317,6 +334,7 @@ class JobStore:
             dtype="int64",
             fill_value=0,
             dimension_names=DIMS["tile_stats"],
+            attributes=DESCRIPTIONS["tile_stats"],
         )
         g.create_array(
             "input_digests",
@@ -325,10 +343,8 @@ class JobStore:
             dtype="uint8",
             fill_value=0,
             dimension_names=DIMS["input_digests"],
+            attributes=DESCRIPTIONS["input_digests"],
         )
-        for name, desc in DESCRIPTIONS.items():
-            if name in g:
-                g[name].attrs.update(desc)
         # attrs last: a store without them is detected as incomplete on open
         g.attrs.update(
             {
@@ -473,7 +489,7 @@ class JobStore:
             self.group.attrs["source_fingerprint"] = fp
 
     def mask_state(self) -> str:
-        """"default" (none given: every pixel), "complete", or "incomplete" (a write was cut short)."""
+        """ "default" (none given: every pixel), "complete", or "incomplete" (a write was cut short)."""
         d = bytes(np.asarray(self.group["input_digests"][self.spec.k]))
         if d == MASK_WRITING:
             return "incomplete"
