@@ -22,13 +22,16 @@ pickled, so build them inside the task that uses them. ``threads=1`` everywhere.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
-import highspy
 import numpy as np
 from numpy.typing import NDArray
 
 from worker.cancel import checkpoint
 from worker.problem import box_halfwidth, slabs
+
+if TYPE_CHECKING:  # imported where a model is built: a run that needs no MILP never loads HiGHS
+    import highspy
 
 #: Slab bounds of a pixel batch: ``(lo, hi)``, or ``eps`` for the paper's slabs.
 Bounds = float | tuple[NDArray[np.float64], NDArray[np.float64]]
@@ -63,6 +66,9 @@ class MilpSolver:
         self.k = self.L.shape[0]
         self.l1 = np.abs(self.L).sum(axis=1)
         self.time_limit = float(time_limit)
+        import highspy
+
+        self._highspy = highspy
         h = highspy.Highs()
         for name, value in (
             ("output_flag", False),
@@ -126,7 +132,7 @@ class MilpSolver:
         h.setSolution(_solution(np.concatenate([start, y])))
         h.run()
         status = h.getModelStatus()
-        finished = status == highspy.HighsModelStatus.kOptimal
+        finished = status == self._highspy.HighsModelStatus.kOptimal
         sol = np.asarray(h.getSolution().col_value)
         obj = h.getInfo().objective_function_value
         claimed = int(k - round(obj)) if np.isfinite(obj) else 0
@@ -183,6 +189,8 @@ def _bounds(I: NDArray[np.float64], bounds: Bounds) -> tuple[NDArray[np.float64]
 
 
 def _solution(values: NDArray[np.float64]) -> highspy.HighsSolution:
+    import highspy
+
     sol = highspy.HighsSolution()
     sol.col_value = list(values)
     sol.value_valid = True
