@@ -562,5 +562,27 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_SERVER
 
 
+def console() -> None:
+    """The ``maxfs`` command: :func:`main`, then a quick exit.
+
+    Once numba's compiled kernels are loaded, the interpreter's own teardown takes about a
+    second (measured 0.9 s after loading them, 0.65 s at the end of a ``maxfs run``) and does
+    nothing for us: every result is written and closed by then. So when no other thread is
+    still at work, the exit handlers run (zarr, logging, temporary folders) and the process
+    ends without that teardown; otherwise Python exits as usual.
+    """
+    import atexit
+    import threading
+
+    code = main()
+    busy = [t for t in threading.enumerate() if t is not threading.main_thread() and not t.daemon]
+    if busy:
+        sys.exit(code)
+    atexit._run_exitfuncs()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    console()
