@@ -345,8 +345,8 @@ class JobStore:
             dimension_names=DIMS["input_digests"],
             attributes=DESCRIPTIONS["input_digests"],
         )
-        # attrs last: a store without them is detected as incomplete on open
-        g.attrs.update(
+        # attrs last, in one metadata write: a store without them is detected as incomplete on open
+        g.update_attributes(
             {
                 "maxfs_format": FORMAT_VERSION,
                 "k": k,
@@ -393,7 +393,7 @@ class JobStore:
     def set_params(self, params: JobParams) -> None:
         """Record (possibly new) parameters; tiles made with others stop counting as done."""
         self.spec.check_params(params)
-        self.group.attrs.update(
+        self.group.update_attributes(
             {"params": params.to_json(), "params_hash": params.digest() if params.eps is not None else None}
         )
 
@@ -687,7 +687,7 @@ class JobStore:
             overwrite=True,
         )
         arr[...] = depth
-        arr.attrs.update(attrs)
+        arr.update_attributes(attrs)
 
 
 @dataclass(frozen=True)
