@@ -239,6 +239,7 @@ class JobStore:
     def __init__(self, path: Path, group: zarr.Group) -> None:
         self.path = Path(path)
         self.group = group
+        self._arrays: dict[str, zarr.Array] = {}
         attrs = dict(group.attrs)
         if attrs.get("maxfs_format") != FORMAT_VERSION:
             fmt = attrs.get("maxfs_format")
@@ -255,6 +256,15 @@ class JobStore:
             lights=np.asarray(group["lights"][...]),
             intensities=np.asarray(group["intensities"][...]),
         )
+
+    def _fixed(self, name: str) -> zarr.Array:
+        """Array ``name``, opened once per store object: only for arrays whose metadata never
+        changes after creation (each ``group[name]`` reads its zarr.json again, and a tile
+        touches a dozen arrays)."""
+        a = self._arrays.get(name)
+        if a is None:
+            a = self._arrays[name] = self.group[name]
+        return a
 
     # -- creation and opening ---------------------------------------------------------------
     @classmethod
@@ -543,10 +553,10 @@ class JobStore:
         return self.read_tile_images(t), self.read_tile_mask(t)
 
     def read_tile_images(self, t: Tile) -> NDArray[Any]:
-        return np.asarray(self.group["images"][:, t.y0 : t.y1, t.x0 : t.x1])
+        return np.asarray(self._fixed("images")[:, t.y0 : t.y1, t.x0 : t.x1])
 
     def read_tile_mask(self, t: Tile) -> NDArray[np.bool_]:
-        return np.asarray(self.group["mask"][t.y0 : t.y1, t.x0 : t.x1])
+        return np.asarray(self._fixed("mask")[t.y0 : t.y1, t.x0 : t.x1])
 
     def write_empty_tile(self, t: Tile, token: int) -> None:
         """A tile with no masked pixel: every output at its fill value, zero stats, done marker."""
@@ -567,23 +577,22 @@ class JobStore:
         self, t: Tile, arrays: Mapping[str, NDArray[Any]], token: int, stats: tuple[int, int, int]
     ) -> None:
         ys, xs = slice(t.y0, t.y1), slice(t.x0, t.x1)
-        g = self.group
         for o in TILE_OUTPUTS:
             if not o.exists(self.spec.channels):
                 continue
-            a = g[o.name]
+            a = self._fixed(o.name)
             value = arrays.get(o.name, a.fill_value)
             if o.per == "image":
                 a[:, ys, xs] = value
             else:
                 a[ys, xs] = value
-        g["tile_stats"][t.ty, t.tx] = np.asarray(stats, dtype=np.int64)
-        g["done"][t.ty, t.tx] = token
+        self._fixed("tile_stats")[t.ty, t.tx] = np.asarray(stats, dtype=np.int64)
+        self._fixed("done")[t.ty, t.tx] = token
 
     def tile_done(self, t: Tile) -> bool:
         """Whether tile ``t`` is finished with the current parameters."""
         p = self.params
-        return p.eps is not None and int(self.group["done"][t.ty, t.tx]) == p.token()
+        return p.eps is not None and int(self._fixed("done")[t.ty, t.tx]) == p.token()
 
     def progress(self) -> ProgressCounts:
         """Counts over the finished tiles, from the done grid and per-tile stats only."""
