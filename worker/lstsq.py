@@ -29,18 +29,34 @@ def refit(
     (P, 3) float64; NaN where fewer than 3 images are selected or the selected
     lights do not determine ``n`` (nearly coplanar, or above ``max_cond``).
     """
+    k = L.shape[0]
     w = sel.astype(np.float64)
     Iw = np.where(sel, I, 0.0)
-    G = np.einsum("pk,ki,kj->pij", w, L, L)
-    r = np.einsum("pk,ki->pi", Iw, L)
-    tr = np.trace(G, axis1=1, axis2=2)
-    ok = (sel.sum(axis=1) >= 3) & (np.linalg.det(G) > _COND * tr**3)
+    # G = sum_i w_i L_i L_i^T and r = sum_i w_i I_i L_i as two matrix products (BLAS): a
+    # three-operand einsum loops in C without them, 10-25x slower at k = 96
+    g = w @ (L[:, :, None] * L[:, None, :]).reshape(k, 9)
+    r = Iw @ L
+    g00, g01, g02, g11, g12, g22 = g[:, 0], g[:, 1], g[:, 2], g[:, 4], g[:, 5], g[:, 8]
+    # the symmetric 3 x 3 systems solved by their cofactors (vectorised; LAPACK's batched
+    # solve costs more than the products above for 3 x 3)
+    c00, c11, c22 = g11 * g22 - g12 * g12, g00 * g22 - g02 * g02, g00 * g11 - g01 * g01
+    c01, c02, c12 = g02 * g12 - g01 * g22, g01 * g12 - g02 * g11, g01 * g02 - g00 * g12
+    det = g00 * c00 + g01 * c01 + g02 * c02
+    tr = g00 + g11 + g22
+    ok = (sel.sum(axis=1) >= 3) & (det > _COND * tr**3)
     if max_cond is not None and ok.any():
-        ev = np.linalg.eigvalsh(G[ok])
-        ok[ok] = ev[:, 2] <= max_cond**2 * ev[:, 0]
+        # lambda_max <= tr and lambda_min >= det / (tr / 2)^2 (the other two sum to <= tr), so
+        # tr^3 <= 4 det max_cond^2 proves the bound; eigenvalues only for the rest
+        unsure = ok & (tr**3 > 0.99 * 4.0 * max_cond**2 * det)
+        if unsure.any():
+            ev = np.linalg.eigvalsh(g[unsure].reshape(-1, 3, 3))
+            ok[unsure] = ev[:, 2] <= max_cond**2 * ev[:, 0]
     n = np.full(r.shape, np.nan)
     if ok.any():
-        n[ok] = np.linalg.solve(G[ok], r[ok][..., None])[..., 0]
+        d, (r0, r1, r2) = det[ok], r[ok].T
+        n[ok, 0] = (c00[ok] * r0 + c01[ok] * r1 + c02[ok] * r2) / d
+        n[ok, 1] = (c01[ok] * r0 + c11[ok] * r1 + c12[ok] * r2) / d
+        n[ok, 2] = (c02[ok] * r0 + c12[ok] * r1 + c22[ok] * r2) / d
     return n
 
 
