@@ -11,6 +11,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+from numpy.typing import NDArray
 
 from storage.imageio import encode_png
 from storage.layout import JobStore
@@ -58,11 +59,12 @@ def find_ground_truth(folder: Path | str) -> Path | None:
     return p if p.is_file() else None
 
 
-def write_depth(path: Path | str) -> DepthResult:
-    """Integrate the store's normals to ``depth`` (H, W) float32, write it into the store (replacing an
-    earlier one) with the method and residual as its attributes, and ``previews/depth.png``."""
+def write_depth(path: Path | str, normal: NDArray[np.floating] | None = None) -> DepthResult:
+    """Integrate the store's normals (``normal``, when the caller has read them already) to ``depth``
+    (H, W) float32, write it into the store (replacing an earlier one) with the method and residual as
+    its attributes, and ``previews/depth.png``."""
     store = JobStore.open(Path(path), mode="r+")
-    res = integrate(store.read_output("normal"), store.read_mask())
+    res = integrate(store.read_output("normal") if normal is None else normal, store.read_mask())
     store.write_depth(
         res.depth,
         res.attrs()
@@ -79,9 +81,9 @@ def write_depth(path: Path | str) -> DepthResult:
 
 def finish_results(path: Path | str) -> str:
     """What follows a finished run: the depth map (when not too large). Returns a note for the user."""
-    store = JobStore.open(Path(path), mode="r")
-    solved = int(np.isfinite(store.read_array("normal", (..., 2))).sum())
+    normal = JobStore.open(Path(path), mode="r").read_output("normal")
+    solved = int(np.isfinite(normal[..., 2]).sum())
     if solved > AUTO_DEPTH_PIXELS:
         return f"depth not integrated ({solved} pixels > {AUTO_DEPTH_PIXELS}); `maxfs export` makes it"
-    res = write_depth(path)
+    res = write_depth(path, normal)
     return f"depth: {res.pixels} pixels in {res.pieces} piece(s), residual RMS {res.residual_rms:.3g} px"
