@@ -231,3 +231,42 @@ def test_above_seed_changes_work_not_count() -> None:
     seeded = exact_pixels(I[rows], lo, hi, V[rows], sc.lights, BOX, 10**7, up)
     np.testing.assert_array_equal(plain[2], seeded[2])
     assert plain[4].all() and seeded[4].all()
+
+
+# --- one compiled variant per kernel ---------------------------------------------------
+
+_COUNT_VARIANTS = """
+import json
+import numpy as np
+from numba.core.registry import CPUDispatcher
+from worker import exact, synthetic
+from worker.problem import make_thresholds, slabs, usable
+sc = synthetic.realistic_scene(48, 24, seed=3, bits=16)
+I = sc.images.reshape(48, -1).T.astype(np.float64)
+th = make_thresholds(48, 200.0)
+V = usable(I.T, th).T
+rows = np.flatnonzero(V.sum(axis=1) >= 3)
+lo, hi = slabs(I[rows], 200.0)
+exact.exact_pixels(I[rows], lo, hi, V[rows], sc.lights, 10.0, 10**6, exact.above_index(rows, 24))
+print(json.dumps({n: len(f.overloads) for n, f in vars(exact).items() if isinstance(f, CPUDispatcher)}))
+"""
+
+
+def test_every_kernel_is_compiled_once(tmp_path) -> None:
+    """A process that compiles the kernels (an empty numba cache: a loaded cache holds only the
+    entry point) ends with one variant of each kernel function: a second one (numba specialising
+    on a literal argument) makes the first compile after an install, and every cold worker's,
+    half as long again."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    env = os.environ | {"NUMBA_CACHE_DIR": str(tmp_path)}
+    out = subprocess.run(
+        [sys.executable, "-c", _COUNT_VARIANTS], capture_output=True, text=True, timeout=600, env=env
+    )
+    assert out.returncode == 0, out.stderr
+    variants = json.loads(out.stdout.strip().splitlines()[-1])
+    assert variants["solve_exact"] == 1 and len(variants) >= 10
+    assert {n: c for n, c in variants.items() if c > 1} == {}

@@ -59,6 +59,10 @@ _ENUM_P = 3  # enumerate vertices in boxes with at most this many crossing slabs
 _AP_GAP = 3  # alternating projections when the incumbent misses at most this many usable images
 _AP_SWEEPS = 12
 _SIGMA_REL = 1e-12  # rounding slack of box-slab tests, relative to U (far below REL_TOL)
+# Integer constants that reach another kernel's arguments are written ``np.int64(...)``: numba types a
+# bare ``0`` or ``-1`` as a literal, and while it infers a loop's types it compiles each callee once for
+# the literal and once more for int64. Those duplicates were 14 of 25 compiled functions and made the
+# first compile after an install 31 s instead of 19 s (tests/test_exact_kernel.py counts them).
 
 
 @njit(cache=True, nogil=True)
@@ -204,8 +208,8 @@ def _hull_pass(
     ``prrow`` holds ``|L|.h`` plus the rounding slack, so "touches" and "contains"
     both err toward "crosses".
     """
-    ns = 0
-    ne = 0
+    ns = np.int64(0)
+    ne = np.int64(0)
     q2 = 0
     cc = 0
     for q in range(p):
@@ -361,7 +365,7 @@ def _bnb(
             c[d] = stc[top, d]
             h[d] = sth[top, d]
         # a move of axis pd not yet applied to the row (none: dc = dh = 0)
-        pd = 0
+        pd = np.int64(0)
         dc = 0.0
         dh = 0.0
         if f <= best and f + p - best <= _SHRINK_GAP and p > _ENUM_P:
@@ -390,7 +394,7 @@ def _bnb(
                     bs,
                     bneg,
                 )
-                pd = 0
+                pd = np.int64(0)
                 dc = 0.0
                 dh = 0.0
                 if f + cc > best:
@@ -419,7 +423,24 @@ def _bnb(
         if p <= _ENUM_P:
             if dc != 0.0 or dh != 0.0:
                 f, p, _, _ = _hull_pass(
-                    L, absL, invL, lo, hi, prow, pvrow, prrow, p, f, 0, h[0], pd, dc, dh, 1, bs, bneg
+                    L,
+                    absL,
+                    invL,
+                    lo,
+                    hi,
+                    prow,
+                    pvrow,
+                    prrow,
+                    p,
+                    f,
+                    np.int64(0),
+                    h[0],
+                    pd,
+                    dc,
+                    dh,
+                    np.int64(1),
+                    bs,
+                    bneg,
                 )
                 if f + p <= best:
                     continue
@@ -630,7 +651,7 @@ def solve_exact(
     bp = np.zeros(3)
     tmp = np.zeros(3)
     for px in range(start, P if stop < 0 else stop):
-        m = 0
+        m = np.int64(0)
         maxb = 0.0
         eps = 0.0  # the widest half-width: the scale of seed slack and of hmin
         for i in range(k):
@@ -657,7 +678,7 @@ def solve_exact(
             lo[j] = a[j] - tol
             hi[j] = b[j] + tol
             margin[j] = 1e-3 * (b[j] - a[j])
-        best = -1
+        best = np.int64(-1)
         # incumbents: the previous and the upper pixel's points and inlier sets, then trimmed least squares
         for t in range(2):
             src = prev if t == 0 else above[px]
@@ -688,7 +709,7 @@ def solve_exact(
             tmp[0] = bp[0]
             tmp[1] = bp[1]
             tmp[2] = bp[2]
-            best = _project(L, a, b, idx, m, U, margin, tmp, _AP_SWEEPS, lo, hi, best, bp)
+            best = _project(L, a, b, idx, m, U, margin, tmp, np.int64(_AP_SWEEPS), lo, hi, best, bp)
         nn = 0
         cert = True
         if best < m:
