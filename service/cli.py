@@ -281,6 +281,19 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_warm(args: argparse.Namespace) -> int:
+    import time
+
+    from worker.task import warm_up
+
+    t0 = time.perf_counter()
+    warm_up()
+    took = time.perf_counter() - t0
+    how = "compiled and cached" if took > 3.0 else "loaded from the cache"
+    print(f"solver kernels ready: {how} in {took:.1f} s")
+    return 0
+
+
 def cmd_serve(args: argparse.Namespace) -> int:
     import uvicorn
 
@@ -491,6 +504,10 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--tile", type=int, default=64)
     p.add_argument("--workers", type=int, default=None)
     p.set_defaults(fn=cmd_demo)
+    p = sub.add_parser(
+        "warm", help="compile the solver for this machine now (else the first run after an install does)"
+    )
+    p.set_defaults(fn=cmd_warm)
     p = sub.add_parser("serve", help="run the HTTP server")
     p.add_argument("--host", default=None)
     p.add_argument("--port", type=int, default=None)

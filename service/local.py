@@ -29,6 +29,13 @@ from storage.layout import GROUP_DIR, JobSpec, JobStore, array_digest, is_job_fo
 from storage.params import JobParams
 from storage.records import JobRecord, JobState, load_record, save_record
 from storage.stack import StackReader
+from worker.task import KernelWarmup
+
+#: Said when loading the solver kernels takes long: they are being compiled.
+COMPILING = (
+    "compiling the exact solver for this machine: once after an install, about 20 s "
+    "(`maxfs warm` does it ahead of time)"
+)
 
 
 def ingest(
@@ -205,6 +212,9 @@ def run_folder(
         if store.done_grid().all() and (out / "previews").is_dir():
             return store, load_record(out)  # finished earlier with these inputs and parameters
         if in_process:
+            if store.params.solver == "exact":
+                # the kernels load while the images are decoded and eps is estimated, not in tile 1
+                KernelWarmup(on_slow=(lambda: on_note(COMPILING)) if on_note else None)
             images = None
             if not store.uploaded().all():  # the stack stays in memory; only its digests are stored
                 with tm.phase("read images"):

@@ -105,3 +105,41 @@ def test_ctrl_c_prints_one_line_and_the_same_command_resumes(tmp_path: Path) -> 
     again = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
     assert again.returncode == 0, again.stderr
     assert JobStore.open(tmp_path / "out", mode="r").done_grid().all()
+
+
+def test_kernel_warmup_tells_of_a_compile_and_keeps_quiet_otherwise(monkeypatch) -> None:
+    """A run loads the kernels on a thread; only a load that takes long (a compile after an
+    install) is announced, once; an error is kept for the first tile to raise again."""
+    import threading
+
+    import worker.task as task
+
+    said: list[str] = []
+    release = threading.Event()
+    monkeypatch.setattr(task, "warm_up", lambda: release.wait(5.0))
+    slow = task.KernelWarmup(on_slow=lambda: said.append("compiling"), slow=0.05)
+    poll_until(lambda: said, 5.0, "the slow-load note")
+    release.set()
+    slow.wait()
+    time.sleep(0.1)
+    assert said == ["compiling"] and slow.error is None
+
+    monkeypatch.setattr(task, "warm_up", lambda: True)
+    fast = task.KernelWarmup(on_slow=lambda: said.append("again"), slow=0.3)
+    fast.wait()
+    time.sleep(0.5)
+    assert said == ["compiling"]
+
+    def broken() -> bool:
+        raise RuntimeError("no compiler")
+
+    monkeypatch.setattr(task, "warm_up", broken)
+    bad = task.KernelWarmup(slow=0.3)
+    bad.wait()
+    assert isinstance(bad.error, RuntimeError)
+
+
+def test_maxfs_warm_says_the_kernels_are_ready() -> None:
+    out = subprocess.run([MAXFS, "warm"], capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.startswith("solver kernels ready: ") and " in " in out.stdout

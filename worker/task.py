@@ -8,6 +8,7 @@ and changes nothing. HiGHS objects are built inside the task (not picklable).
 from __future__ import annotations
 
 import os
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -169,7 +170,10 @@ def estimate_eps_of(store: JobStore, read_images: Callable[[Tile], NDArray] | No
 
 def warm_up() -> bool:
     """Load the compiled solver kernels in this worker process (numba cache), so
-    the first tile of the first job does not pay for it. Run on every worker."""
+    the first tile of the first job does not pay for it. Run on every worker.
+
+    After an install (or a change to the kernel's source) this compiles them instead, about
+    20 s on one core, and writes the cache every later process loads from (0.7 s)."""
     from worker import synthetic
     from worker.exact import exact_pixels
 
@@ -177,3 +181,33 @@ def warm_up() -> bool:
     I = np.array([[100.0, 90.0, 80.0, 0.0]])
     exact_pixels(I, I - 1.0, I + 1.0, I > 0, L, 10.0, 1000)
     return True
+
+
+class KernelWarmup:
+    """:func:`warm_up` on a thread, started while a run does other work (decoding the images,
+    creating the store, estimating eps), so its first tile does not wait for the kernels.
+
+    ``on_slow`` is called once, from a timer thread, if loading takes over ``slow`` seconds:
+    then the kernels are being compiled (the first run after an install), which a user should
+    be told about rather than see a first tile that takes 20 s."""
+
+    def __init__(self, on_slow: Callable[[], None] | None = None, slow: float = 3.0) -> None:
+        self.error: BaseException | None = None
+        self._thread = threading.Thread(target=self._run, name="maxfs-warmup", daemon=True)
+        self._timer = threading.Timer(slow, on_slow) if on_slow else None
+        if self._timer:
+            self._timer.daemon = True
+            self._timer.start()
+        self._thread.start()
+
+    def _run(self) -> None:
+        try:
+            warm_up()
+        except BaseException as e:  # the first tile raises it again, with its own context
+            self.error = e
+        finally:
+            if self._timer:
+                self._timer.cancel()
+
+    def wait(self) -> None:
+        self._thread.join()
