@@ -110,10 +110,13 @@ def _check_same_inputs(store: JobStore, ds: Dataset, spec: JobSpec, out: Path, c
         raise differ(f"{s.k} images of {s.height} x {s.width} {s.dtype}: the image count, size or type")
     if store.lights_digest != lights_digest(spec):
         raise differ("the light directions or intensities")
-    stored, uploaded, known = store.digests(), store.uploaded(), store.known_images()
+    stored = store.digests()  # k + 1 chunks each, like uploaded: read once, and only when needed
+    known = store.known_images(stored)
     fp = ds.fingerprint()
-    same_files = fp is not None and fp == store.source_fingerprint and store.input_identity() is not None
-    if not (same_files and (uploaded.all() or not copy_images)):
+    same_files = fp is not None and fp == store.source_fingerprint
+    same_files = same_files and store.input_identity(stored) is not None
+    uploaded = store.uploaded() if copy_images or not same_files else None
+    if uploaded is not None and not (same_files and uploaded.all()):
         new: dict[int, bytes] = {}
         for i in range(ds.k):
             if same_files and uploaded[i]:

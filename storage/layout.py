@@ -463,7 +463,8 @@ class JobStore:
         return np.asarray(self.group["uploaded"][...])
 
     def digests(self) -> list[bytes]:
-        """Recorded digests: images 0..k-1, then the mask (zeros = not written)."""
+        """Recorded digests: images 0..k-1, then the mask (zeros = not written). One read of
+        k + 1 chunks: callers that need several views of them take this list once."""
         return [bytes(row) for row in np.asarray(self.group["input_digests"][...])]
 
     def write_mask(self, mask: NDArray[np.bool_], after_first_band: Callable[[], None] | None = None) -> None:
@@ -517,19 +518,22 @@ class JobStore:
         rows = np.stack([np.frombuffer(digests[i], np.uint8) for i in idx])
         self.group["input_digests"].set_orthogonal_selection((np.asarray(idx), slice(None)), rows)
 
-    def known_images(self) -> NDArray[np.bool_]:
-        """Images whose digest is recorded (stored, or digested by an in-memory run)."""
-        return np.asarray(self.group["input_digests"][: self.spec.k]).any(axis=1)
+    def known_images(self, digests: list[bytes] | None = None) -> NDArray[np.bool_]:
+        """Images whose digest is recorded (stored, or digested by an in-memory run), from
+        ``digests`` (:meth:`digests`, read again when not given)."""
+        rows = self.digests() if digests is None else digests
+        return np.array([any(d) for d in rows[: self.spec.k]], dtype=bool)
 
-    def input_identity(self) -> str | None:
+    def input_identity(self, digests: list[bytes] | None = None) -> str | None:
         """A digest of every input (images, mask, lights, intensities, shape); None while an
-        image's digest is unknown or the mask is incomplete."""
-        if not self.known_images().all() or self.mask_state() == "incomplete":
+        image's digest is unknown or the mask is incomplete. ``digests`` as for :meth:`known_images`."""
+        rows = self.digests() if digests is None else digests
+        if not all(any(d) for d in rows[: self.spec.k]) or rows[self.spec.k] == MASK_WRITING:
             return None
         s = self.spec
         h = hashlib.sha256(f"{s.k}|{s.height}|{s.width}|{s.channels}|{s.dtype}|".encode())
         h.update(bytes.fromhex(self.group.attrs["lights_digest"]))
-        for d in self.digests():
+        for d in rows:
             h.update(d)
         return h.hexdigest()
 
