@@ -77,13 +77,13 @@ def main() -> None:
         slurm_interface="lo", slurm_memory="1GiB", slurm_walltime="00:30:00", slurm_idle_timeout=600
     )
     configs = [
-        ("embedded LocalCluster", n, base.model_copy(update={"cluster": "local", "workers": n}))
+        ("embedded LocalCluster", n, base.replace(cluster="local", workers=n))
         for n in (1, 2)
     ] + [
         (
             "SLURM worker jobs",
             n,
-            base.model_copy(update={"cluster": "slurm", "slurm_min_jobs": n, "slurm_max_jobs": n}),
+            base.replace(cluster="slurm", slurm_min_jobs=n, slurm_max_jobs=n),
         )
         for n in (1, 2)
     ]
