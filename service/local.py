@@ -17,7 +17,6 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from service.inprocess import run_in_process
 from service.previews import PREVIEW_INPUTS, PREVIEWS, render
 from service.progress import ProgressFn
 from service.settings import Settings, cluster_settings, runs_in_process
@@ -29,7 +28,6 @@ from storage.layout import GROUP_DIR, JobSpec, JobStore, array_digest, is_job_fo
 from storage.params import JobParams
 from storage.records import JobRecord, JobState, load_record, save_record
 from storage.stack import StackReader
-from worker.task import KernelWarmup
 
 #: Said when loading the solver kernels takes long: they are being compiled.
 COMPILING = (
@@ -215,6 +213,10 @@ def run_folder(
         if store.done_grid().all() and (out / "previews").is_dir():
             return store, load_record(out)  # finished earlier with these inputs and parameters
         if in_process:
+            # the solver (numba, the kernels) is imported only now: a finished job never loads it
+            from service.inprocess import run_in_process
+            from worker.task import KernelWarmup
+
             if store.params.solver == "exact":
                 # the kernels load while the images are decoded and eps is estimated, not in tile 1
                 KernelWarmup(on_slow=(lambda: on_note(COMPILING)) if on_note else None)

@@ -8,12 +8,15 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 from storage.layout import JobStore
 from storage.options import Estimate, check_options
 from storage.params import JobParams
 from storage.records import JobRecord
-from worker.task import TileOutcome
+
+if TYPE_CHECKING:  # worker.task imports the solver (numba): not for a finished job's re-run
+    from worker.task import TileOutcome
 
 ProgressFn = Callable[[JobRecord], None]
 
