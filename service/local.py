@@ -213,9 +213,9 @@ def run_folder(
         if store.done_grid().all() and (out / "previews").is_dir():
             return store, load_record(out)  # finished earlier with these inputs and parameters
         if in_process:
-            # the solver (numba, the kernels) is imported only now: a finished job never loads it
-            from service.inprocess import run_in_process
-            from worker.task import KernelWarmup
+            with tm.phase("imports"):  # the solver (numba) only now: a finished job never loads it
+                from service.inprocess import run_in_process
+                from worker.task import KernelWarmup
 
             if store.params.solver == "exact":
                 # the kernels load while the images are decoded and eps is estimated, not in tile 1

@@ -6,6 +6,9 @@ import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 
+#: The row for time outside every named phase.
+OTHER = "other"
+
 
 class Timings:
     """Phases in the order they ran; a phase entered twice adds up."""
@@ -28,10 +31,12 @@ class Timings:
     def table(self) -> str:
         """A plain text table: phase, seconds, share of the total since construction."""
         total = time.perf_counter() - self.t0
-        w = max(len(n) for n in [*self.phases, "phase"]) + 2
+        w = max(len(n) for n in [*self.phases, "phase", OTHER]) + 2
         rows = [f"{'phase':<{w}}{'seconds':>9}{'share':>8}"]
         for name, s in self.phases.items():
             rows.append(f"{name:<{w}}{s:9.2f}{s / total:8.0%}")
+        rest = total - sum(self.phases.values())  # records, progress counts: the rows add up to the total
+        rows.append(f"{OTHER:<{w}}{rest:9.2f}{rest / total:8.0%}")
         rows.append(f"{'total':<{w}}{total:9.2f}{1:8.0%}")
         return "\n".join(rows)
 
