@@ -346,6 +346,7 @@ def _bnb(
         pr[0, q] = U * (absL[j, 0] + absL[j, 1] + absL[j, 2]) + sig
     top = 1
     nodes = 0
+    zero, one = np.int64(0), np.int64(1)  # not literals (see the note on np.int64 above)
     c = np.empty(3)
     h = np.empty(3)
     while top > 0:
@@ -423,24 +424,7 @@ def _bnb(
         if p <= _ENUM_P:
             if dc != 0.0 or dh != 0.0:
                 f, p, _, _ = _hull_pass(
-                    L,
-                    absL,
-                    invL,
-                    lo,
-                    hi,
-                    prow,
-                    pvrow,
-                    prrow,
-                    p,
-                    f,
-                    np.int64(0),
-                    h[0],
-                    pd,
-                    dc,
-                    dh,
-                    np.int64(1),
-                    bs,
-                    bneg,
+                    L, absL, invL, lo, hi, prow, pvrow, prrow, p, f, zero, h[0], pd, dc, dh, one, bs, bneg
                 )
                 if f + p <= best:
                     continue
