@@ -39,4 +39,3 @@ class Timings:
         rows.append(f"{OTHER:<{w}}{rest:9.2f}{rest / total:8.0%}")
         rows.append(f"{'total':<{w}}{total:9.2f}{1:8.0%}")
         return "\n".join(rows)
-

@@ -11,6 +11,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pytest
 import zarr
 
 from storage.datasets import write_npy_folder
@@ -121,26 +122,24 @@ def test_ctrl_c_prints_one_line_and_the_same_command_resumes(tmp_path: Path) -> 
     assert JobStore.open(tmp_path / "out", mode="r").done_grid().all()
 
 
-def test_kernel_warmup_tells_of_a_compile_and_keeps_quiet_otherwise(monkeypatch) -> None:
-    """A run loads the kernels on a thread; only a load that takes long (a compile after an
-    install) is announced, once; an error is kept for the first tile to raise again."""
-    import threading
-
+def test_loading_the_kernels_tells_of_a_compile_and_keeps_quiet_otherwise(monkeypatch) -> None:
+    """Only a load that takes long (a compile after an install) is announced, once, while it
+    runs; a fast load says nothing, and an error reaches the run."""
     import worker.task as task
 
     said: list[str] = []
-    release = threading.Event()
-    monkeypatch.setattr(task, "warm_up", lambda: release.wait(5.0))
-    slow = task.KernelWarmup(on_slow=lambda: said.append("compiling"), slow=0.05)
-    poll_until(lambda: said, 5.0, "the slow-load note")
-    release.set()
-    slow.wait()
+
+    def slow_load() -> bool:
+        poll_until(lambda: said, 5.0, "the slow-load note while loading")
+        return True
+
+    monkeypatch.setattr(task, "warm_up", slow_load)
+    assert task.load_kernels(on_slow=lambda: said.append("compiling"), slow=0.05) >= 0.05
     time.sleep(0.1)
-    assert said == ["compiling"] and slow.error is None
+    assert said == ["compiling"]
 
     monkeypatch.setattr(task, "warm_up", lambda: True)
-    fast = task.KernelWarmup(on_slow=lambda: said.append("again"), slow=0.3)
-    fast.wait()
+    task.load_kernels(on_slow=lambda: said.append("again"), slow=0.3)
     time.sleep(0.5)
     assert said == ["compiling"]
 
@@ -148,9 +147,10 @@ def test_kernel_warmup_tells_of_a_compile_and_keeps_quiet_otherwise(monkeypatch)
         raise RuntimeError("no compiler")
 
     monkeypatch.setattr(task, "warm_up", broken)
-    bad = task.KernelWarmup(slow=0.3)
-    bad.wait()
-    assert isinstance(bad.error, RuntimeError)
+    with pytest.raises(RuntimeError, match="no compiler"):
+        task.load_kernels(on_slow=lambda: said.append("late"), slow=0.3)
+    time.sleep(0.5)
+    assert said == ["compiling"]
 
 
 def test_maxfs_warm_says_the_kernels_are_ready() -> None:

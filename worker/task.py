@@ -183,31 +183,22 @@ def warm_up() -> bool:
     return True
 
 
-class KernelWarmup:
-    """:func:`warm_up` on a thread, started while a run does other work (decoding the images,
-    creating the store, estimating eps), so its first tile does not wait for the kernels.
+def load_kernels(on_slow: Callable[[], None] | None = None, slow: float = 3.0) -> float:
+    """:func:`warm_up` in this thread, before a run's first tile; returns the seconds it took.
 
-    ``on_slow`` is called once, from a timer thread, if loading takes over ``slow`` seconds:
-    then the kernels are being compiled (the first run after an install), which a user should
-    be told about rather than see a first tile that takes 20 s."""
-
-    def __init__(self, on_slow: Callable[[], None] | None = None, slow: float = 3.0) -> None:
-        self.error: BaseException | None = None
-        self._thread = threading.Thread(target=self._run, name="maxfs-warmup", daemon=True)
-        self._timer = threading.Timer(slow, on_slow) if on_slow else None
-        if self._timer:
-            self._timer.daemon = True
-            self._timer.start()
-        self._thread.start()
-
-    def _run(self) -> None:
-        try:
-            warm_up()
-        except BaseException as e:  # the first tile raises it again, with its own context
-            self.error = e
-        finally:
-            if self._timer:
-                self._timer.cancel()
-
-    def wait(self) -> None:
-        self._thread.join()
+    ``on_slow`` is called once, from a timer thread, if it takes over ``slow`` seconds: then the
+    kernels are being compiled (the first run after an install), which a user should be told
+    about rather than see a first tile that takes 20 s. Not on a thread beside the decoding or
+    the eps estimate: on 2 cores that cost more than it hid (the cache load holds the GIL for
+    much of its 0.7 s; bench.phases: 0.6 s slower in the median of 4 interleaved runs)."""
+    timer = threading.Timer(slow, on_slow) if on_slow else None
+    t0 = time.perf_counter()
+    if timer:
+        timer.daemon = True
+        timer.start()
+    try:
+        warm_up()
+    finally:
+        if timer:
+            timer.cancel()
+    return time.perf_counter() - t0
