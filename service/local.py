@@ -223,7 +223,10 @@ def run_folder(
                     images = read_stack(ds, store, workers, prefetch)
             if store.params.solver == "exact":
                 with tm.phase("load the solver"):  # its own row: 0.7 s from the cache, or a compile
-                    load_kernels(on_slow=(lambda: on_note(COMPILING)) if on_note else None)
+                    try:
+                        load_kernels(on_slow=(lambda: on_note(COMPILING)) if on_note else None)
+                    except Exception:  # the first tile raises it again, and the job fails with it
+                        pass
             rec = run_in_process(out, threads=workers, images=images, on_progress=on_progress, timings=tm.add)
         else:
             with tm.phase("cluster run (start, tiles, stop)"):

@@ -157,3 +157,23 @@ def test_maxfs_warm_says_the_kernels_are_ready() -> None:
     out = subprocess.run([MAXFS, "warm"], capture_output=True, text=True, timeout=600)
     assert out.returncode == 0, out.stderr
     assert out.stdout.startswith("solver kernels ready: ") and " in " in out.stdout
+
+
+def test_a_failed_kernel_load_leaves_the_verdict_to_the_tiles(tmp_path: Path, monkeypatch) -> None:
+    """The up-front load is an optimisation: if it fails, the run goes on and its tiles (which
+    load the kernels again) decide, so a failure ends as a failed job with a reason, not a crash."""
+    import worker.task as task
+    from service.local import run_folder
+    from storage.datasets import load_folder
+    from storage.params import JobParams
+    from storage.records import JobState
+
+    sc = synthetic.bump_scene(8, 32, seed=1)
+    folder = write_npy_folder(tmp_path / "in", sc.images.astype(np.uint8), sc.lights, sc.mask)
+
+    def broken(on_slow=None, slow=3.0) -> float:
+        raise RuntimeError("no compiler")
+
+    monkeypatch.setattr(task, "load_kernels", broken)
+    _, rec = run_folder(load_folder(folder), tmp_path / "out", JobParams.build(eps=1.0, tile=16), workers=1)
+    assert rec.state is JobState.DONE and rec.tiles_done == rec.tiles_total
