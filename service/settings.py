@@ -39,7 +39,7 @@ def _parse(kind: str, value: Any, where: str) -> Any:
         if kind == "int":
             if isinstance(value, bool) or (isinstance(value, float) and not value.is_integer()):
                 raise ValueError
-            return int(str(value).strip()) if isinstance(value, str) else int(value)
+            return int(value)  # a str may have spaces and underscores ("1_000"), not a point
         if kind == "float":
             if isinstance(value, bool):
                 raise ValueError

@@ -528,7 +528,7 @@ class JobStore:
         """A digest of every input (images, mask, lights, intensities, shape); None while an
         image's digest is unknown or the mask is incomplete. ``digests`` as for :meth:`known_images`."""
         rows = self.digests() if digests is None else digests
-        if not all(any(d) for d in rows[: self.spec.k]) or rows[self.spec.k] == MASK_WRITING:
+        if not self.known_images(rows).all() or rows[self.spec.k] == MASK_WRITING:
             return None
         s = self.spec
         h = hashlib.sha256(f"{s.k}|{s.height}|{s.width}|{s.channels}|{s.dtype}|".encode())

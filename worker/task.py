@@ -183,7 +183,11 @@ def warm_up() -> bool:
     return True
 
 
-def load_kernels(on_slow: Callable[[], None] | None = None, slow: float = 3.0) -> float:
+#: A kernel load slower than this is a compile (a cache load takes 0.7 s, a compile 15-30 s).
+SLOW_LOAD_SECONDS = 3.0
+
+
+def load_kernels(on_slow: Callable[[], None] | None = None, slow: float = SLOW_LOAD_SECONDS) -> float:
     """:func:`warm_up` in this thread, before a run's first tile; returns the seconds it took.
 
     ``on_slow`` is called once, from a timer thread, if it takes over ``slow`` seconds: then the
