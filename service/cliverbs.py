@@ -33,7 +33,10 @@ def format_status(st: dict[str, Any]) -> str:
     if st["state"] in (JobState.QUEUED, JobState.RUNNING):
         parts.append(f"ETA {_hms(p.get('eta_seconds'))}")
     if p.get("solved_share") is not None and st["state"] in FINAL_STATES:
-        parts.append(f"solved {p['solved_share']:.1%}, certified {p.get('certified_share') or 0:.1%}")
+        cert = f"certified {p.get('certified_share') or 0:.1%}"
+        if st.get("calibration"):
+            cert += " but calibration suspect (see the warnings)"
+        parts.append(f"solved {p['solved_share']:.1%}, {cert}")
     if st.get("eps") is not None:
         parts.append(f"eps {st['eps']:.4g}")
     line = "  ".join(parts)

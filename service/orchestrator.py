@@ -48,13 +48,14 @@ async def run_job(
     fair: FairShare | None = None,
     user: str = "",
     tile_time_limit: float | None = None,
-    finish: Callable[[Path], None] | None = None,
+    finish: Callable[[Path], list[str] | None] | None = None,
 ) -> JobRecord:
     """Run (or resume) every unfinished tile of a job; return its final record.
 
     ``finish(job_dir)`` runs (in a thread) after the last tile and before the job is
-    recorded done, so a client that sees ``done`` also sees previews and depth; if it
-    fails, the job is still done (the arrays stand) and the failure is logged.
+    recorded done, so a client that sees ``done`` also sees previews and depth; what it
+    returns is the record's ``calibration`` (the checks that found the inputs suspect). If
+    it fails, the job is still done (the arrays stand) and the failure is logged.
 
     The job ends ``done``, ``failed`` (with a reason) or ``cancelled`` (a cancel
     flag was set in the store). If this coroutine itself is cancelled without a
@@ -87,9 +88,7 @@ async def run_job(
                     client.submit(estimate_store_eps, str(job_dir), key=key, pure=False, retries=retries)
                 )
             except Exception as e:
-                raise RuntimeError(
-                    f"estimating eps and the response failed: {type(e).__name__}: {e}"
-                ) from e
+                raise RuntimeError(f"estimating eps and the response failed: {type(e).__name__}: {e}") from e
             params = resolve_eps(store, eps)
         rec.eps = params.eps
         # many small reads (one per tile): in a thread, so the server keeps answering meanwhile
@@ -182,7 +181,7 @@ async def run_job(
         await asyncio.to_thread(count_finished, rec, store)
         if finish is not None:
             try:
-                await asyncio.to_thread(finish, job_dir)
+                rec.calibration = list(await asyncio.to_thread(finish, job_dir) or ())
             except Exception:
                 log.exception("job %s: previews or depth failed; the results stand", rec.id)
         rec.state, rec.finished_at = JobState.DONE, time.time()

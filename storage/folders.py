@@ -22,13 +22,23 @@ import numpy as np
 import tifffile
 from numpy.typing import NDArray
 
-from storage.datasets import Dataset, _existing, _lights, _mask_from, _probe, _read_matrix, read_image
+from storage.datasets import (
+    Dataset,
+    _existing,
+    _lights,
+    _mask_from,
+    _probe,
+    _read_matrix,
+    folder_notes,
+    read_image,
+)
 from storage.errors import DatasetError, InvalidInputError
 from storage.options import DTYPES, WARN_LIGHT_CONDITION, check_lights, light_condition, light_singular_values
 
 IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".tga", ".bmp", ".jpg", ".jpeg")
 LIGHT_FILES = ("light_directions.txt", "lights.txt", "lights.npy")
 INTENSITY_FILES = ("light_intensities.txt", "intensities.txt")
+TEXT_FILES = tuple(n for n in (*LIGHT_FILES, *INTENSITY_FILES) if n.endswith(".txt"))
 
 
 def _natural_key(name: str) -> list:
@@ -112,6 +122,7 @@ def tiff_stack(folder: Path, path: Path) -> Dataset:
         intensities=inten,
         mask=mask,
         files=_existing([path, *used], folder, "mask.png"),
+        notes=folder_notes(folder, TEXT_FILES),
     )
 
 
@@ -141,6 +152,7 @@ def plain_folder(folder: Path) -> Dataset:
         intensities=inten,
         mask=mask,
         files=_existing([*paths, *used], folder, "mask.png"),
+        notes=folder_notes(folder, TEXT_FILES),
     )
 
 
@@ -200,6 +212,7 @@ def select_images(ds: Dataset, indices: list[int]) -> Dataset:
         mask=ds.mask,
         _reader=lambda i: reader(idx[i]),
         files=(),  # no file fingerprint: the same files with another choice are other inputs
+        notes=ds.notes,
     )
 
 

@@ -22,9 +22,10 @@ from storage.errors import StoreError
 from storage.layout import JobStore
 from storage.options import Estimate
 from storage.tiles import Tile
+from worker import calibration
 from worker.cancel import TileCancelled, cancel_points
 from worker.problem import make_thresholds
-from worker.solve import estimate_job, solve_tile
+from worker.solve import eps_sample, estimate_job, solve_tile
 
 
 class TileStatus(StrEnum):
@@ -206,3 +207,36 @@ def load_kernels(on_slow: Callable[[], None] | None = None, slow: float = SLOW_L
         if timer:
             timer.cancel()
     return time.perf_counter() - t0
+
+
+def check_calibration(
+    store: JobStore,
+    read_images: Callable[[Tile], NDArray] | None = None,
+    normal: NDArray | None = None,
+) -> list[calibration.Finding]:
+    """Every calibration check (:mod:`worker.calibration`) on a finished job: the lights alone, the
+    lights against the data on the fixed sample of the eps estimate (``read_images`` as for
+    :func:`compute_tile`), the solved ``normal`` (read from the store when not given) and, without
+    a mask, the share of background pixels."""
+    spec = store.spec
+    read = read_images or store.read_tile_images
+    obs = store.observation_model
+    out = [calibration.lights_facing(spec.lights)]
+    has_mask = store.mask_state() != "default"
+    picks = eps_sample((spec.height, spec.width), store.read_mask() if has_mask else None)
+    if picks:
+        raw = np.concatenate([read(t)[:, ys, xs] for t, ys, xs in picks], axis=1)
+        grey, _, saturated = obs.prepare(raw)
+        out += calibration.light_checks(grey, np.isfinite(grey) & ~saturated, spec.lights)
+        if not has_mask:
+            out.append(calibration.no_mask(grey.max(axis=1), _dark_level(grey, obs.step)))
+    n = store.read_output("normal") if normal is None else normal
+    out += [calibration.normals_facing(n), calibration.flip_integrability(n)]
+    return out
+
+
+def _dark_level(grey: NDArray, step: float | None) -> float:
+    """What no lit surface stays under in every image: 2 % of the sample's 99th percentile, and
+    at least two quantisation steps for integer input."""
+    top = float(np.nanpercentile(grey, 99)) if grey.size else 0.0
+    return max(calibration.DARK_SHARE * top, 2.0 * (step or 0.0))
