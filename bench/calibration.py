@@ -24,59 +24,27 @@ synthetic scenes; ``--objects cat,cow``: the DiLiGenT crops to break).
 from __future__ import annotations
 
 import argparse
-import shutil
 import tempfile
 import time
-from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
 from storage.datasets import Dataset, load_folder, write_npy_folder
 from worker import calibration, synthetic
+from worker.calibration import MISTAKES, miscalibrated_copy
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 UW_OBJECTS = ("buddha", "cat", "chrome", "gray", "horse", "owl", "rock")
-CHECKS = (
-    "lights facing away",
-    calibration.GAIN_CHECK,
-    calibration.ORDER_CHECK,
-    "normals facing away",
-    "normals integrate (y flip)",
-    "no mask",
-)
-SHORT = {
-    "lights facing away": "lights z<=0",
-    calibration.GAIN_CHECK: "gain spread",
-    calibration.ORDER_CHECK: "order ratio",
-    "normals facing away": "normals nz<0",
-    "normals integrate (y flip)": "curl ratio",
-    "no mask": "dark share",
+#: Every check (worker.calibration), its column's name and its threshold.
+CHECKS = {
+    calibration.LIGHTS_CHECK: ("lights z<=0", calibration.LIGHTS_BEHIND_SHARE),
+    calibration.GAIN_CHECK: ("gain spread", calibration.GAIN_SPREAD),
+    calibration.ORDER_CHECK: ("order ratio", calibration.ORDER_RATIO),
+    calibration.NORMALS_CHECK: ("normals nz<0", calibration.NORMALS_BEHIND_SHARE),
+    calibration.FLIP_CHECK: ("curl ratio", calibration.FLIP_CURL_RATIO),
+    calibration.MASK_CHECK: ("dark share", calibration.BACKGROUND_SHARE),
 }
-
-
-def _rewrite_lights(folder: Path, fn: Callable[[np.ndarray], np.ndarray]) -> None:
-    p = folder / "light_directions.txt"
-    np.savetxt(p, fn(np.loadtxt(p)), fmt="%.6f")
-
-
-BREAKS: dict[str, Callable[[Path], None]] = {
-    "no intensities": lambda f: (f / "light_intensities.txt").unlink(),
-    "misnamed intensities": lambda f: (f / "light_intensities.txt").rename(f / "light_intensity.txt"),
-    "lights permuted": lambda f: _rewrite_lights(
-        f, lambda L: L[np.random.default_rng(1).permutation(len(L))]
-    ),
-    "y down": lambda f: _rewrite_lights(f, lambda L: L * [1.0, -1.0, 1.0]),
-    "z negated": lambda f: _rewrite_lights(f, lambda L: L * [1.0, 1.0, -1.0]),
-    "no mask": lambda f: (f / "mask.png").unlink(),
-}
-
-
-def broken_copy(src: Path, dst: Path, mistake: str) -> Path:
-    """A copy of the DiLiGenT folder ``src`` at ``dst`` with one mistake of :data:`BREAKS`."""
-    shutil.copytree(src, dst, ignore=shutil.ignore_patterns("Normal_gt.mat"))
-    BREAKS[mistake](dst)
-    return dst
 
 
 def synthetic_folders(root: Path, quick: bool) -> dict[str, Path]:
@@ -142,8 +110,8 @@ def main(argv: list[str] | None = None) -> None:
         for obj in ("cat",) if args.quick else ("cat", "cow", "pot1"):
             rows.append((f"diligent {obj}", "good", diligent / f"{obj}PNG"))
         for obj in args.objects.split(","):
-            for mistake in BREAKS:
-                dst = broken_copy(
+            for mistake in MISTAKES:
+                dst = miscalibrated_copy(
                     diligent / f"{obj}PNG", root / f"{obj}-{mistake.replace(' ', '-')}", mistake
                 )
                 rows.append((f"diligent {obj}", mistake, dst))
@@ -151,8 +119,8 @@ def main(argv: list[str] | None = None) -> None:
             rows.append((f"uw-psm {obj}", "good", DATA / "uw-psm" / obj))
         for name, folder in synthetic_folders(root / "syn", args.quick).items():
             rows.append((name, "good", folder))
-        head = ["data", "calibration", "folder", *(SHORT[c] for c in CHECKS), "checks s", "verdict"]
-        print("thresholds: " + ", ".join(f"{SHORT[c]} > {t:g}" for c, t in _thresholds().items()))
+        head = ["data", "calibration", "folder", *(col for col, _ in CHECKS.values()), "checks s", "verdict"]
+        print("thresholds: " + ", ".join(f"{col} > {t:g}" for col, t in CHECKS.values()))
         print("| " + " | ".join(head) + " |")
         print("|" + "---|" * len(head))
         for i, (name, what, folder) in enumerate(rows):
@@ -169,24 +137,6 @@ def main(argv: list[str] | None = None) -> None:
                 verdict,
             ]
             print("| " + " | ".join(cells) + " |", flush=True)
-
-
-def _thresholds() -> dict[str, float]:
-    c = calibration
-    return dict(
-        zip(
-            CHECKS,
-            (
-                c.LIGHTS_BEHIND_SHARE,
-                c.GAIN_SPREAD,
-                c.ORDER_RATIO,
-                c.NORMALS_BEHIND_SHARE,
-                c.FLIP_CURL_RATIO,
-                c.BACKGROUND_SHARE,
-            ),
-            strict=True,
-        )
-    )
 
 
 if __name__ == "__main__":

@@ -19,7 +19,6 @@ import httpx
 import numpy as np
 import pytest
 
-from bench.calibration import BREAKS, broken_copy
 from service import cli
 from storage.datasets import folder_notes, load_folder, write_npy_folder
 from storage.observations import ObservationModel
@@ -28,6 +27,7 @@ from tests import data
 from tests.procs import Server
 from worker import calibration as cal
 from worker import synthetic
+from worker.calibration import MISTAKES, miscalibrated_copy
 
 MAXFS = str(Path(sys.executable).parent / "maxfs")
 
@@ -135,13 +135,13 @@ EXPECTED = {
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("mistake", [None, *BREAKS])
+@pytest.mark.parametrize("mistake", [None, *MISTAKES])
 def test_cli_run_warns_about_each_calibration_mistake(
     tmp_path: Path, diligent: Path, mistake: str | None, capsys: pytest.CaptureFixture
 ) -> None:
     folder = diligent / "catPNG"
     if mistake is not None:
-        folder = broken_copy(folder, tmp_path / "cat", mistake)
+        folder = miscalibrated_copy(folder, tmp_path / "cat", mistake)
     assert (
         cli.main(
             [

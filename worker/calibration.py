@@ -34,7 +34,10 @@ callers can both warn and print the figure (``python -m bench.calibration``).
 
 from __future__ import annotations
 
+import shutil
+from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
@@ -53,8 +56,13 @@ PERMUTATIONS = 5
 #: The light checks use at most this many of the sampled pixels (evenly spread): with k images
 #: that is k thousand observations, plenty for a median, and the checks stay under a second.
 MAX_PIXELS = 1000
+#: The checks' names (a record's calibration messages start with them).
+LIGHTS_CHECK = "lights facing away"
+NORMALS_CHECK = "normals facing away"
 GAIN_CHECK = "image brightness vs light intensities"
 ORDER_CHECK = "light order"
+FLIP_CHECK = "normals integrate (y flip)"
+MASK_CHECK = "no mask"
 #: An observation is lit above this share of its pixel's brightest (unsaturated) one.
 LIT_SHARE = 0.05
 #: At least this share of the sampled pixels must have MIN_LIT lit observations.
@@ -95,7 +103,7 @@ def lights_facing(lights: NDArray[np.floating]) -> Finding:
             f"{share:.0%} of the lights have z <= 0, i.e. point away from the camera; z must point "
             "toward the camera (x right, y up): negate the lights' z"
         )
-    return Finding("lights facing away", share, LIGHTS_BEHIND_SHARE, msg)
+    return Finding(LIGHTS_CHECK, share, LIGHTS_BEHIND_SHARE, msg)
 
 
 def normals_facing(normal: NDArray[np.floating]) -> Finding:
@@ -103,7 +111,7 @@ def normals_facing(normal: NDArray[np.floating]) -> Finding:
     nz = np.asarray(normal)[..., 2]
     nz = nz[np.isfinite(nz)]
     if nz.size == 0:
-        return Finding("normals facing away", None, NORMALS_BEHIND_SHARE)
+        return Finding(NORMALS_CHECK, None, NORMALS_BEHIND_SHARE)
     share = float(np.mean(nz < 0.0))
     msg = None
     if share > NORMALS_BEHIND_SHARE:
@@ -111,7 +119,7 @@ def normals_facing(normal: NDArray[np.floating]) -> Finding:
             f"{share:.0%} of the solved normals face away from the camera (n_z < 0), which no "
             "visible surface does: the lights' z probably points away from the camera (negate it)"
         )
-    return Finding("normals facing away", share, NORMALS_BEHIND_SHARE, msg)
+    return Finding(NORMALS_CHECK, share, NORMALS_BEHIND_SHARE, msg)
 
 
 def _solve3(A: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -257,7 +265,7 @@ def flip_integrability(normal: NDArray[np.floating]) -> Finding:
     q = np.where(ok, n[..., 1] / nz, 0.0)  # dz/dr = -dz/dy (rows run down)
     given = _curl(p, q, ok)
     if given.size < MIN_CELLS:
-        return Finding("normals integrate (y flip)", None, FLIP_CURL_RATIO)
+        return Finding(FLIP_CHECK, None, FLIP_CURL_RATIO)
     mirrored = _curl(p, -q, ok)
     ratio = float(np.median(np.abs(given)) / max(np.median(np.abs(mirrored)), 1e-12))
     msg = None
@@ -267,7 +275,7 @@ def flip_integrability(normal: NDArray[np.floating]) -> Finding:
             "times the curl): the lights' y (or x) axis is probably flipped; lights use x right, "
             "y up (image rows run down), z toward the camera"
         )
-    return Finding("normals integrate (y flip)", ratio, FLIP_CURL_RATIO, msg)
+    return Finding(FLIP_CHECK, ratio, FLIP_CURL_RATIO, msg)
 
 
 def background_share(bright: NDArray[np.floating], level: float) -> float:
@@ -287,4 +295,30 @@ def no_mask(bright: NDArray[np.floating], level: float) -> Finding:
             "pixels are dark in every image); give a mask (mask.png, non-zero = object) to solve the "
             "object only"
         )
-    return Finding("no mask", share, BACKGROUND_SHARE, msg)
+    return Finding(MASK_CHECK, share, BACKGROUND_SHARE, msg)
+
+
+# -- the mistakes, made on purpose (bench.calibration and the tests) --------------------------------
+def _rewrite_lights(folder: Path, fn: Callable[[np.ndarray], np.ndarray]) -> None:
+    p = folder / "light_directions.txt"
+    np.savetxt(p, fn(np.loadtxt(p)), fmt="%.6f")
+
+
+MISTAKES: dict[str, Callable[[Path], object]] = {
+    "no intensities": lambda f: (f / "light_intensities.txt").unlink(),
+    "misnamed intensities": lambda f: (f / "light_intensities.txt").rename(f / "light_intensity.txt"),
+    "lights permuted": lambda f: _rewrite_lights(
+        f, lambda L: L[np.random.default_rng(1).permutation(len(L))]
+    ),
+    "y down": lambda f: _rewrite_lights(f, lambda L: L * [1.0, -1.0, 1.0]),
+    "z negated": lambda f: _rewrite_lights(f, lambda L: L * [1.0, 1.0, -1.0]),
+    "no mask": lambda f: (f / "mask.png").unlink(),
+}
+
+
+def miscalibrated_copy(src: Path, dst: Path, mistake: str) -> Path:
+    """A copy of the DiLiGenT folder ``src`` at ``dst`` (without its ground truth) with one mistake
+    of :data:`MISTAKES`: what ``bench.calibration`` and the tests measure the checks on."""
+    shutil.copytree(src, dst, ignore=shutil.ignore_patterns("Normal_gt.mat"))
+    MISTAKES[mistake](dst)
+    return dst
