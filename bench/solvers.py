@@ -37,15 +37,15 @@ from pathlib import Path
 import numpy as np
 
 from bench.exact_v1 import exact_pixels as exact_pixels_v1
-from storage.datasets import load_folder
-from storage.observations import ObservationModel
-from storage.tiles import DEFAULT_TILE
-from worker import synthetic
-from worker.exact import exact_pixels
-from worker.lstsq import refit
-from worker.milp import MilpSolver
-from worker.problem import make_thresholds, slabs, usable
-from worker.solve import estimate_job_eps, solve_pixels
+from maxfs.storage.inputs import load_folder
+from maxfs.storage.observations import ObservationModel
+from maxfs.storage.tiles import DEFAULT_TILE
+from maxfs.worker import synthetic
+from maxfs.worker.exact import exact_pixels
+from maxfs.worker.lstsq import refit
+from maxfs.worker.milp import MilpSolver
+from maxfs.worker.problem import make_thresholds, slabs, usable
+from maxfs.worker.solve import estimate_job_eps, solve_pixels
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 UW_OBJECTS = ("buddha", "cat", "chrome", "gray", "horse", "owl", "rock")

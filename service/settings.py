@@ -15,11 +15,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from storage.errors import InvalidInputError
-from storage.tiles import DEFAULT_TASK_MEMORY
+from maxfs.storage.errors import InvalidInputError
+from maxfs.storage.tiles import DEFAULT_TASK_MEMORY
 
 LOOPBACK = ("127.0.0.1", "::1", "localhost")
-#: Where tiles run (:mod:`service.cluster`).
+#: Where tiles run (:mod:`service.runs.cluster`).
 KINDS = ("local", "slurm", "address")
 ENV_PREFIX = "MAXFS_"
 _TRUE = frozenset({"1", "true", "t", "yes", "y", "on"})
@@ -64,7 +64,7 @@ class Settings:
 
     #: Where job stores live (one folder per job under ``jobs/``) and the token file.
     data_dir: Path = Path("maxfs-data")
-    #: Where tiles run (:mod:`service.cluster`): "local" (embedded LocalCluster), "slurm" (worker
+    #: Where tiles run (:mod:`service.runs.cluster`): "local" (embedded LocalCluster), "slurm" (worker
     #: jobs through dask-jobqueue) or "address" (``scheduler``); empty = "address" when
     #: ``scheduler`` is set, else "local".
     cluster: str = ""
@@ -203,7 +203,7 @@ def cluster_kind(settings: Settings) -> str:
 
 
 def cluster_settings(scheduler: str = "", workers: int = 2, cluster: str = "") -> Settings:
-    """The ``MAXFS_*`` settings with the cluster the command line chose (see :mod:`service.cluster`)."""
+    """The ``MAXFS_*`` settings with the cluster the command line chose (see :mod:`service.runs.cluster`)."""
     return Settings().replace(scheduler=scheduler, workers=workers, cluster=cluster)
 
 

@@ -56,13 +56,19 @@ import numpy as np
 import zarr
 from numpy.typing import NDArray
 
-from storage.digests import DIGEST_BYTES, ArrayHasher, array_digest
-from storage.errors import ConflictError, InvalidInputError, NotFoundError, StoreError
-from storage.observations import ObservationModel
-from storage.options import DTYPES, check_lights
-from storage.outputs import OUTPUT_NAMES, OUTPUT_TABLE, OUTPUTS_BY_NAME, TILE_OUTPUTS, output_bytes_per_pixel
-from storage.params import JobParams
-from storage.tiles import Tile, auto_tile, grid_shape, tile_memory, tiles
+from maxfs.storage.digests import DIGEST_BYTES, ArrayHasher, array_digest
+from maxfs.storage.errors import ConflictError, InvalidInputError, NotFoundError, StoreError
+from maxfs.storage.observations import ObservationModel
+from maxfs.storage.options import DTYPES, check_lights
+from maxfs.storage.outputs import (
+    OUTPUT_NAMES,
+    OUTPUT_TABLE,
+    OUTPUTS_BY_NAME,
+    TILE_OUTPUTS,
+    output_bytes_per_pixel,
+)
+from maxfs.storage.params import JobParams
+from maxfs.storage.tiles import Tile, auto_tile, grid_shape, tile_memory, tiles
 
 
 def lights_digest(spec: JobSpec) -> str:
@@ -316,7 +322,7 @@ class JobStore:
         )
         for o in OUTPUT_TABLE:
             if o.made == "after" or not o.exists(C):
-                continue  # depth is made after the run (service.research); albedo_rgb needs colour
+                continue  # depth is made after the run (service.results.research); albedo_rgb needs colour
             shape = o.shape(k, H, W, C)
             chunks = tuple({"y": tc[0], "x": tc[1]}.get(d, n) for d, n in zip(o.dims, shape, strict=True))
             g.create_array(

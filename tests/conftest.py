@@ -32,10 +32,10 @@ from typing import Any
 import numpy as np
 import pytest
 
+from maxfs.worker import synthetic
+from maxfs.worker.solve import Solution, solve
 from tests import data
 from tests.procs import DaskCluster, InProcessServer, Procs, Server, log_tails
-from worker import synthetic
-from worker.solve import Solution, solve
 
 # -- processes ---------------------------------------------------------------------------------
 

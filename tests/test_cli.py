@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import zarr
 
-from storage.layout import JobStore
+from maxfs.storage.layout import JobStore
 from tests.data import UW_OBJECTS
 
 MAXFS = str(Path(sys.executable).parent / "maxfs")
@@ -90,7 +90,7 @@ def test_cli_server_failures_exit_3(monkeypatch: pytest.MonkeyPatch, capsys: pyt
     """A server that cannot be reached or answers 5xx is exit 3; its refusals (4xx) are 2, like bad input."""
     import httpx
 
-    from service import cli
+    from maxfs.service.cli import main as cli
 
     r = _maxfs("status", "0" * 32, "--server", "http://127.0.0.1:9", timeout=120)
     assert r.returncode == 3 and "cannot talk to the server" in r.stderr and "Traceback" not in r.stderr
@@ -108,7 +108,7 @@ def test_cli_server_failures_exit_3(monkeypatch: pytest.MonkeyPatch, capsys: pyt
 
 
 def test_token_create_list_revoke(tmp_path: Path) -> None:
-    from storage.tokens import TokenStore
+    from maxfs.storage.tokens import TokenStore
 
     d = str(tmp_path / "data")
     r = _maxfs("token", "create", "alice", "--data-dir", d)

@@ -15,11 +15,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from service.client import MaxfsClient
-from storage.layout import JobStore
-from storage.records import RECORD_NAME, load_record
+from maxfs.service.cli.client import MaxfsClient
+from maxfs.storage.layout import JobStore
+from maxfs.storage.records import RECORD_NAME, load_record
+from maxfs.worker.solve import Solution
 from tests.procs import Procs, Server, poll_until
-from worker.solve import Solution
 
 OUTPUTS = ("normal", "albedo", "inliers", "inlier_count", "optimal")
 K, SIZE, TILE, EPS = 12, 64, 16, 2.0

@@ -15,11 +15,11 @@ import numpy as np
 import pytest
 import zarr
 
-from service.client import MaxfsClient
-from storage.imageio import decode_bytes
-from storage.layout import JobStore
+from maxfs.service.cli.client import MaxfsClient
+from maxfs.storage.imageio import decode_bytes
+from maxfs.storage.layout import JobStore
+from maxfs.worker.solve import Solution
 from tests.procs import DaskCluster, Server, poll_until
-from worker.solve import Solution
 
 OUTPUTS = ("normal", "albedo", "inliers", "inlier_count", "optimal")
 

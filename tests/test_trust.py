@@ -17,10 +17,10 @@ import numpy as np
 import pytest
 import zarr
 
-from storage.datasets import write_npy_folder
-from storage.layout import MASK_WRITING, JobStore
+from maxfs.storage.datasets import write_npy_folder
+from maxfs.storage.layout import MASK_WRITING, JobStore
+from maxfs.worker import synthetic
 from tests.procs import Server, poll_until
-from worker import synthetic
 
 MAXFS = str(Path(sys.executable).parent / "maxfs")
 
@@ -215,8 +215,8 @@ def test_results_of_an_unfinished_job_say_so_and_fetch_refuses_them(
 def test_validating_lights_again_changes_no_bit() -> None:
     """The input identity digests validated lights: validating twice (loader, CLI, store)
     must not move them by an ulp, or a re-run would see "other inputs"."""
-    from storage.layout import JobSpec, lights_digest
-    from storage.options import check_lights
+    from maxfs.storage.layout import JobSpec, lights_digest
+    from maxfs.storage.options import check_lights
 
     rng = np.random.default_rng(0)
     raw = synthetic.lights_uniform(96) * (1 + 1e-7 * rng.standard_normal((96, 1)))

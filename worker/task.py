@@ -18,13 +18,13 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from storage.errors import StoreError
-from storage.layout import JobStore
-from storage.options import Estimate
-from storage.tiles import Tile
-from worker.cancel import TileCancelled, cancel_points
-from worker.problem import make_thresholds
-from worker.solve import estimate_job, solve_tile
+from maxfs.storage.errors import StoreError
+from maxfs.storage.layout import JobStore
+from maxfs.storage.options import Estimate
+from maxfs.storage.tiles import Tile
+from maxfs.worker.cancel import TileCancelled, cancel_points
+from maxfs.worker.problem import make_thresholds
+from maxfs.worker.solve import estimate_job, solve_tile
 
 
 class TileStatus(StrEnum):
@@ -174,8 +174,8 @@ def warm_up() -> bool:
 
     After an install (or a change to the kernel's source) this compiles them instead, about
     20 s on one core, and writes the cache every later process loads from (0.7 s)."""
-    from worker import synthetic
-    from worker.exact import exact_pixels
+    from maxfs.worker import synthetic
+    from maxfs.worker.exact import exact_pixels
 
     L = synthetic.lights_uniform(4)
     I = np.array([[100.0, 90.0, 80.0, 0.0]])
