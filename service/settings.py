@@ -153,16 +153,6 @@ class Settings:
     #: Server URL and API token used by ``maxfs submit/status/fetch/cancel``.
     server: str = "http://127.0.0.1:8000"
     token: str = ""
-    #: Tests only: a fault to inject ("pause-mask-write": a mask write stops after its first
-    #: band for a minute, so a test can kill the server mid-write; "free-bytes:N": the disk
-    #: has N bytes free, whatever it really has). Empty in real use.
-    fault: str = ""
-    #: Tests only: tile indices, ","-separated (e.g. "3,5"), whose tile task raises a clear error
-    #: before it reads its input; "@FILE": the indices in FILE, while it exists (so a test can clear
-    #: the fault without a restart). The tile task reads ``MAXFS_TEST_FAIL_TILES`` itself, in the
-    #: worker's environment (:mod:`worker.task`; an embedded cluster's workers inherit the
-    #: server's). Empty in real use.
-    test_fail_tiles: str = ""
 
     def __init__(self, **given: Any) -> None:
         fields = {f.name: f for f in dataclasses.fields(self)}

@@ -47,7 +47,7 @@ import hashlib
 import json
 import os
 import time
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -473,9 +473,9 @@ class JobStore:
         k + 1 chunks: callers that need several views of them take this list once."""
         return [bytes(row) for row in np.asarray(self.group["input_digests"][...])]
 
-    def write_mask(self, mask: NDArray[np.bool_], after_first_band: Callable[[], None] | None = None) -> None:
+    def write_mask(self, mask: NDArray[np.bool_]) -> None:
         """Store the mask, band by band; a crash part-way leaves :meth:`mask_state`
-        "incomplete", never a silent mix of old and new. ``after_first_band`` is a test hook."""
+        "incomplete", never a silent mix of old and new."""
         s = self.spec
         if mask.shape != (s.height, s.width):
             raise InvalidInputError(
@@ -487,8 +487,6 @@ class JobStore:
         arr, rows = self.group["mask"], int(self.group["mask"].chunks[0])
         for y in range(0, s.height, rows):
             arr[y : y + rows] = m[y : y + rows]
-            if y == 0 and after_first_band is not None:
-                after_first_band()
         dig[s.k] = np.frombuffer(array_digest(m), np.uint8)
 
     @property

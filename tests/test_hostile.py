@@ -30,6 +30,7 @@ from distributed import Client
 from maxfs.service.cli.client import MaxfsClient
 from maxfs.worker import synthetic
 from tests.badrequests import Bad, Req, check_refused, run_setup, send
+from tests.faults import fault_env
 from tests.loadgen import png_bomb
 from tests.procs import BIN, DaskCluster, Server, poll_until
 
@@ -547,7 +548,7 @@ def test_concurrent_uploads_cannot_eat_the_disk_reserve(cluster: DaskCluster, se
     free = need + 9 * MB  # the file system's free space, as the server is told (the reserve is 0)
     env = {
         "MAXFS_MIN_FREE_BYTES": "0",
-        "MAXFS_FAULT": f"free-bytes:{free}",
+        **fault_env(free_bytes=free),
         "MAXFS_MAX_UPLOADS_PER_USER": "100",
     }
     server = server_factory(scheduler=cluster.address, auth=True, env=env)

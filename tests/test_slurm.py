@@ -27,6 +27,8 @@ from maxfs.storage.inputs import load_folder
 from maxfs.storage.layout import JobStore
 from tests.procs import Server, poll_until
 
+pytestmark = pytest.mark.slurm
+
 REPO = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
 MAXFS = str(BIN / "maxfs")

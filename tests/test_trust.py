@@ -20,6 +20,7 @@ import zarr
 from maxfs.storage.datasets import write_npy_folder
 from maxfs.storage.layout import MASK_WRITING, JobStore
 from maxfs.worker import synthetic
+from tests.faults import fault_env
 from tests.procs import Server, poll_until
 
 MAXFS = str(Path(sys.executable).parent / "maxfs")
@@ -149,7 +150,7 @@ def test_mask_cut_short_by_a_killed_server_is_never_used(
 ) -> None:
     sc = synthetic.bump_scene(6, 160, seed=1)
     images = sc.images.astype(np.uint8)
-    server = server_factory(workers=1, env={"MAXFS_FAULT": "pause-mask-write"})
+    server = server_factory(workers=1, env=fault_env(pause_mask_write=True))
     with httpx.Client(base_url=server.url, timeout=120) as http:
         jid = _job(http, images, sc.lights, tile=32)
         threading.Thread(target=_mask_put_until_killed, args=(http, jid, sc.mask), daemon=True).start()

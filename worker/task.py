@@ -7,7 +7,6 @@ and changes nothing. HiGHS objects are built inside the task (not picklable).
 
 from __future__ import annotations
 
-import os
 import threading
 import time
 from collections.abc import Callable
@@ -49,16 +48,6 @@ class TileOutcome:
     nodes: int = 0
 
 
-def _test_fault(tile_index: int) -> None:
-    """Tests only: ``MAXFS_TEST_FAIL_TILES="3,5"`` (or ``"@FILE"``, FILE holding "3,5" while it
-    exists) makes those tiles raise; see ``service.settings.Settings.test_fail_tiles``."""
-    fail = os.environ.get("MAXFS_TEST_FAIL_TILES", "")
-    if fail.startswith("@"):
-        fail = Path(fail[1:]).read_text() if Path(fail[1:]).exists() else ""
-    if str(tile_index) in fail.replace(" ", "").split(","):
-        raise RuntimeError(f"tile {tile_index}: failure injected by MAXFS_TEST_FAIL_TILES (tests only)")
-
-
 def run_tile(job_dir: str, tile_index: int, params_hash: str, time_limit: float | None = None) -> TileOutcome:
     """Compute tile ``tile_index`` of the job at ``job_dir``; write outputs, then the done marker."""
     store = JobStore.open(Path(job_dir))
@@ -90,7 +79,6 @@ def compute_tile(
         return TileOutcome(tile_index, TileStatus.SKIPPED)
     if store.cancel_requested:
         return TileOutcome(tile_index, TileStatus.CANCELLED)
-    _test_fault(tile_index)
     mask = store.read_tile_mask(t)
     if not mask.any():  # nothing of the object here: fill values, no image read, no solve
         store.write_empty_tile(t, token)

@@ -140,18 +140,14 @@ class UploadSlots:
 
 
 class DiskBudget:
-    """Free disk above the reserve, minus what requests in flight have reserved.
+    """Free disk above the reserve, minus what requests in flight have reserved."""
 
-    ``fake_free`` (tests only, ``MAXFS_FAULT=free-bytes:N``) replaces the file system's
-    free space by a fixed number, so a test can set the headroom exactly.
-    """
-
-    def __init__(self, root: Path, reserve: int, fake_free: int | None = None) -> None:
-        self.root, self.reserve, self.fake_free = Path(root), reserve, fake_free
+    def __init__(self, root: Path, reserve: int) -> None:
+        self.root, self.reserve = Path(root), reserve
         self.reserved = 0
 
     def free(self) -> int:
-        return self.fake_free if self.fake_free is not None else shutil.disk_usage(self.root).free
+        return shutil.disk_usage(self.root).free
 
     def check(self, nbytes: int, what: str) -> None:
         """Refuse (507) to store ``nbytes`` more if that would eat into the reserve."""

@@ -78,8 +78,7 @@ class JobManager:
         #: each user's jobs (service.http.index); every tile's priority (service.runs.fairness)
         self.index = JobIndex()
         self.fair = FairShare()
-        fake = s.fault.removeprefix("free-bytes:") if s.fault.startswith("free-bytes:") else None
-        self.disk = DiskBudget(self.root, s.min_free_bytes, None if fake is None else int(fake))
+        self.disk = DiskBudget(self.root, s.min_free_bytes)
         self.uploads = UploadSlots(s.max_uploads_per_user)
         self.decoder = Decoder(s.decode_slots)
         #: quota and disk checks (service.http.quotas)
@@ -240,9 +239,8 @@ class JobManager:
         return await self._write_before_start(job_id, "images can be uploaded", write, image=index)
 
     async def upload_mask(self, job_id: str, mask: NDArray[np.bool_]) -> JobRecord:
-        pause = (lambda: time.sleep(60)) if self.settings.fault == "pause-mask-write" else None
         return await self._write_before_start(
-            job_id, "the mask can be set", lambda store: store.write_mask(mask, pause), image=None
+            job_id, "the mask can be set", lambda store: store.write_mask(mask), image=None
         )
 
     async def start_job(self, job_id: str, user: User) -> JobRecord:
