@@ -10,7 +10,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import shutil
-import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -257,16 +256,3 @@ def write_previews(store: JobStore) -> list[Path]:
         p.write_bytes(encode_png(render(name, arrays, store.spec.k)))
         paths.append(p)
     return paths
-
-
-def format_progress(rec: JobRecord, width: int = 30) -> str:
-    """One status line: bar, tiles, pixel rate, ETA."""
-    frac = rec.tiles_done / rec.tiles_total if rec.tiles_total else 0.0
-    bar = "#" * int(frac * width) + "." * (width - int(frac * width))
-    rate = f"{rec.pixel_rate / 1e3:.1f}k px/s" if rec.pixel_rate else "-- px/s"
-    eta = "--"
-    if rec.pixel_rate and rec.pixels_total > rec.pixels_done:
-        eta = time.strftime("%H:%M:%S", time.gmtime((rec.pixels_total - rec.pixels_done) / rec.pixel_rate))
-    return (
-        f"[{bar}] {frac:4.0%} {rec.tiles_done}/{rec.tiles_total} tiles  {rate}  ETA {eta}  {rec.state.value}"
-    )
