@@ -270,7 +270,7 @@ def _run(
             params,
             overwrite=overwrite,
             workers=workers or settings.workers,
-            in_process_bytes=max(settings.in_process_bytes, ds.nbytes),  # no cluster behind a notebook
+            in_process_bytes=settings.in_process_bytes,  # larger stacks: the embedded cluster, as maxfs run
         )
         if rec.state is not JobState.DONE:
             raise MaxfsError(f"the job ended {rec.state.value}: {rec.error or 'no reason recorded'}")
