@@ -26,7 +26,10 @@ def _maxfs(*args: str, timeout: float = 300) -> subprocess.CompletedProcess:
 SOLVED_SHARE = {obj: (0.95, 1.0) for obj in UW_OBJECTS} | {"chrome": (0.0, 0.3)}
 
 
-@pytest.mark.parametrize("obj", UW_OBJECTS)
+# one object in the fast tier, the others with the slow one
+@pytest.mark.parametrize(
+    "obj", [o if o == "cat" else pytest.param(o, marks=pytest.mark.slow) for o in UW_OBJECTS]
+)
 def test_run_uw_object_writes_sane_outputs(tmp_path: Path, obj: str, uw_psm: Path) -> None:
     out = tmp_path / f"{obj}.zarr"
     r = _maxfs("run", str(uw_psm / obj), "-o", str(out), "--workers", "2")

@@ -143,6 +143,7 @@ def test_embedded_cluster_refuses_other_local_clients_and_serves_no_http(
     assert _speaks_http(server.port)  # the server itself, of course
 
 
+@pytest.mark.slow
 def test_embedded_cluster_serves_a_dashboard_only_when_asked() -> None:
     port = free_port()
 

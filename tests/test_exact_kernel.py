@@ -252,6 +252,7 @@ print(json.dumps({n: len(f.overloads) for n, f in vars(exact).items() if isinsta
 """
 
 
+@pytest.mark.slow
 def test_every_kernel_is_compiled_once(tmp_path) -> None:
     """A process that compiles the kernels (an empty numba cache: a loaded cache holds only the
     entry point) ends with one variant of each kernel function: a second one (numba specialising

@@ -40,6 +40,7 @@ def _run(folder: Path, out: Path, *extra: str, **env: str) -> subprocess.Complet
     )
 
 
+@pytest.mark.slow
 def test_threads_and_dask_cluster_give_identical_stores_and_finished_jobs_do_not_rerun(
     tmp_path: Path,
 ) -> None:
@@ -83,6 +84,7 @@ def test_threads_and_dask_cluster_give_identical_stores_and_finished_jobs_do_not
     assert look.stdout.strip().splitlines()[-1] == "0 []", look.stdout + look.stderr
 
 
+@pytest.mark.slow
 def test_ctrl_c_prints_one_line_and_the_same_command_resumes(tmp_path: Path) -> None:
     sc = synthetic.bump_scene(12, 96, seed=2)
     folder = write_npy_folder(tmp_path / "in", sc.images.astype(np.uint8), sc.lights, sc.mask)

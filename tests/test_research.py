@@ -271,6 +271,7 @@ def test_xarray_opens_a_job_store_with_named_dimensions(tmp_path: Path, channels
     assert ds.attrs["k"] == k and ds.attrs["params"]["tile"] == store.params.tile
 
 
+@pytest.mark.slow
 def test_run_reports_the_folders_own_ground_truth_and_gt_overrides_it(tmp_path: Path, diligent: Path) -> None:
     """A DiLiGenT folder's Normal_gt.mat is evaluated at the end of ``maxfs run``; ``--gt`` names
     another map, and the printed numbers are those of ``maxfs eval``."""

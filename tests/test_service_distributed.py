@@ -76,6 +76,7 @@ def _assert_equal(arrays: dict[str, np.ndarray], ref: Solution) -> None:
         )
 
 
+@pytest.mark.smoke
 def test_http_job_equals_in_process_solver(
     dask_cluster: DaskCluster, server_factory: Callable[..., Server], tmp_path: Path, data: Data
 ) -> None:

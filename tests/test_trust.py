@@ -41,6 +41,7 @@ def _normals(out: Path) -> np.ndarray:
     return np.asarray(zarr.open_group(out / "results.zarr", mode="r")["normal"][...])
 
 
+@pytest.mark.slow
 def test_reused_output_of_another_object_is_refused_then_overwritten(tmp_path: Path, uw_psm: Path) -> None:
     out = tmp_path / "cat.zarr"
     assert _maxfs("run", str(uw_psm / "cat"), "-o", str(out), "--workers", "1").returncode == 0
@@ -58,6 +59,7 @@ def test_reused_output_of_another_object_is_refused_then_overwritten(tmp_path: P
     assert r.returncode == 0 and "tiles already done" in r.stderr
 
 
+@pytest.mark.slow
 def test_changed_image_content_is_refused_and_unchanged_inputs_resume(tmp_path: Path) -> None:
     folder = _scene_folder(tmp_path, "scene")
     out = tmp_path / "out.zarr"

@@ -124,6 +124,7 @@ def _accept_confirm(driver) -> None:
     poll_until(accepted, 10, "the confirmation dialog")
 
 
+@pytest.mark.smoke
 def test_job_page(server: Server, chrome, shots: Path) -> None:
     url = server.url
     with (
