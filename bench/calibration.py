@@ -30,9 +30,10 @@ from pathlib import Path
 
 import numpy as np
 
-from storage.datasets import Dataset, load_folder, write_npy_folder
-from worker import calibration, synthetic
-from worker.calibration import MISTAKES, miscalibrated_copy
+from maxfs.storage.datasets import Dataset, write_npy_folder
+from maxfs.storage.inputs import load_folder
+from maxfs.worker import calibration, synthetic
+from maxfs.worker.calibration import MISTAKES, miscalibrated_copy
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 UW_OBJECTS = ("buddha", "cat", "chrome", "gray", "horse", "owl", "rock")
@@ -74,12 +75,12 @@ def synthetic_folders(root: Path, quick: bool) -> dict[str, Path]:
 def measure(ds: Dataset, out: Path) -> tuple[dict[str, calibration.Finding], list[str], float]:
     """Run ``ds`` as ``maxfs run`` does (default options, in process); its findings, the record's
     calibration messages and the seconds the checks took."""
-    from service.cli import _params, parser
-    from service.local import run_folder
-    from service.settings import Settings
-    from storage.layout import JobSpec, JobStore
-    from storage.params import JobParams
-    from worker.task import check_calibration
+    from maxfs.service.cli.main import _params, parser
+    from maxfs.service.runs.local import run_folder
+    from maxfs.service.settings import Settings
+    from maxfs.storage.layout import JobSpec, JobStore
+    from maxfs.storage.params import JobParams
+    from maxfs.worker.task import check_calibration
 
     kw = _params(parser().parse_args(["run", "x", "-o", "y"]))
     spec = JobSpec(ds.k, ds.height, ds.width, ds.channels, ds.dtype, ds.lights, ds.intensities).validate()

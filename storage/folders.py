@@ -22,7 +22,7 @@ import numpy as np
 import tifffile
 from numpy.typing import NDArray
 
-from storage.datasets import (
+from maxfs.storage.datasets import (
     Dataset,
     _existing,
     _lights,
@@ -32,8 +32,14 @@ from storage.datasets import (
     folder_notes,
     read_image,
 )
-from storage.errors import DatasetError, InvalidInputError
-from storage.options import DTYPES, WARN_LIGHT_CONDITION, check_lights, light_condition, light_singular_values
+from maxfs.storage.errors import DatasetError, InvalidInputError
+from maxfs.storage.options import (
+    DTYPES,
+    WARN_LIGHT_CONDITION,
+    check_lights,
+    light_condition,
+    light_singular_values,
+)
 
 IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".tga", ".bmp", ".jpg", ".jpeg")
 LIGHT_FILES = ("light_directions.txt", "lights.txt", "lights.npy")
@@ -154,18 +160,6 @@ def plain_folder(folder: Path) -> Dataset:
         files=_existing([*paths, *used], folder, "mask.png"),
         notes=folder_notes(folder, TEXT_FILES),
     )
-
-
-def detect(folder: Path) -> Dataset | None:
-    """A TIFF-stack or plain folder, or None if ``folder`` is neither."""
-    if lights_file(folder) is None:
-        return None
-    path = stack_file(folder)
-    if path is not None:
-        return tiff_stack(folder, path)
-    if plain_images(folder):
-        return plain_folder(folder)
-    return None
 
 
 # -- choosing images -----------------------------------------------------------------------------------

@@ -19,15 +19,16 @@ import httpx
 import numpy as np
 import pytest
 
-from service import cli
-from storage.datasets import folder_notes, load_folder, write_npy_folder
-from storage.observations import ObservationModel
-from storage.records import JobRecord, JobState
+from maxfs.service.cli import main as cli
+from maxfs.storage.datasets import folder_notes, write_npy_folder
+from maxfs.storage.inputs import load_folder
+from maxfs.storage.observations import ObservationModel
+from maxfs.storage.records import JobRecord, JobState
+from maxfs.worker import calibration as cal
+from maxfs.worker import synthetic
+from maxfs.worker.calibration import MISTAKES, miscalibrated_copy
 from tests import data
 from tests.procs import Server
-from worker import calibration as cal
-from worker import synthetic
-from worker.calibration import MISTAKES, miscalibrated_copy
 
 MAXFS = str(Path(sys.executable).parent / "maxfs")
 
