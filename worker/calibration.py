@@ -12,15 +12,19 @@ callers can both warn and print the figure (``python -m bench.calibration``).
 * **normals facing away** (:func:`normals_facing`): the share of solved normals with
   ``n_z < 0``. A surface the camera sees faces it (``n_z >= 0``); noise at silhouettes
   makes a few per cent negative. Threshold: a quarter.
-* **lights that do not explain the data** (:func:`light_fit`): on the fixed pixel sample of
-  the eps estimate, the robust residual of the per-pixel least-squares fit with the given
-  lights against the residual of the best rank-3 fit with *any* lights (the data's own
-  Lambertian subspace, alternating least squares over the lit, unsaturated observations).
-  Both are in the same units, so their ratio is 1 plus what the lights cost: with right
-  lights the free fit gains only its 3k extra parameters (ratio near 1 whatever the noise
-  and the object); lights in the wrong order, or missing intensities (each image is then
-  scaled by its light's brightness), leave a residual several times the data's own.
-  Threshold: 2 (twice the residual the data allow).
+* **image brightness vs light intensities** (:func:`light_checks`): on the fixed pixel sample
+  of the eps estimate, each image's gain is fitted (alternating with the pixels' normals) so
+  that ``g_i L_i . n`` fits the lit, unsaturated observations; with the right intensities every
+  gain is 1 up to the model's misfit. The median ``|log g_i|`` is the typical error of the
+  intensities; missing ones leave the rig's spread of brightness (DiLiGenT: a factor 6 between
+  the dimmest and brightest light, 0.3 in this measure). Threshold: 0.15 (16 %).
+* **light order** (:func:`light_checks`): a permutation test. The robust residual of the
+  per-pixel fit with the given lights over the median residual with the same lights shuffled
+  (:data:`PERMUTATIONS` fixed shuffles). The right order explains Lambertian data several
+  times better than a random one (0.4 or less on every dataset here); lights in another order
+  than the images are a random order (about 1). Threshold: 0.6. Both light checks abstain
+  where the data cannot tell: fewer than :data:`MIN_LIT` images, or under half the pixels lit
+  in that many (a mirror ball).
 * **normals that do not integrate** (:func:`flip_integrability`): the curl of the normals'
   slope field against that of the same field with y negated. Lights with y pointing down
   (or x left) give the mirror image of the true normals, which is not the gradient of any
@@ -28,8 +32,9 @@ callers can both warn and print the figure (``python -m bench.calibration``).
   is the true one, integrates better. Threshold: the given field's median curl at least
   1.5 times the mirrored one's (noise adds to both alike and pulls the ratio to 1; shapes
   with ``z_xy = 0`` everywhere, planes and cylinders, cannot tell and give 1).
-* **no mask** (:func:`background_share`): without a mask every pixel is solved, including
-  the background; a share of pixels that are dark in almost every image says there is one.
+* **no mask** (:func:`no_mask`): without a mask every pixel is solved, including the
+  background; more than 5 % of pixels dark in every image (no observation above 2 % of the
+  data's 99th percentile, nor two quantisation steps) says there is one.
 """
 
 from __future__ import annotations
@@ -73,9 +78,9 @@ FLIP_CURL_RATIO = 1.5
 BACKGROUND_SHARE = 0.05
 #: A pixel is background-like when no image is above this share of the data's 99th percentile.
 DARK_SHARE = 0.02
-#: Pixels and images need this many lit observations to take part in the light fit.
+#: Pixels need this many lit observations to take part in the light checks (3 to fit, 3 to spare).
 MIN_LIT = 6
-#: Fewer sampled pixels than this: the light fit says nothing.
+#: Fewer sampled pixels than this: the light checks say nothing.
 MIN_PIXELS = 50
 
 
