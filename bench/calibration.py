@@ -43,7 +43,7 @@ CHECKS = {
     calibration.GAIN_CHECK: ("gain spread", calibration.GAIN_SPREAD),
     calibration.ORDER_CHECK: ("order ratio", calibration.ORDER_RATIO),
     calibration.NORMALS_CHECK: ("normals nz<0", calibration.NORMALS_BEHIND_SHARE),
-    calibration.FLIP_CHECK: ("curl ratio", calibration.FLIP_CURL_RATIO),
+    calibration.FLIP_CHECK: ("mirror z", calibration.FLIP_Z),
     calibration.MASK_CHECK: ("dark share", calibration.BACKGROUND_SHARE),
 }
 

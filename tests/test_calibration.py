@@ -86,12 +86,15 @@ def test_y_flip_shows_in_the_integrability_of_the_normals() -> None:
     for sc in (synthetic.sphere(8, 64), synthetic.realistic_scene(8, 64)):
         good = cal.flip_integrability(sc.normals)
         flipped = cal.flip_integrability(sc.normals * [1, -1, 1])
-        assert good.value < 1.0 and not good.tripped
-        assert flipped.tripped and flipped.value > 2.0 and "flipped" in flipped.message
-    # a plane has no z_xy: nothing to tell, no warning either way
-    plane = np.zeros((32, 32, 3))
+        assert good.value < 0 and not good.tripped
+        assert flipped.tripped and flipped.value > 2 * cal.FLIP_Z and "flipped" in flipped.message
+    # where the shape cannot tell (a plane under noise) the test stays near chance either way
+    plane = np.zeros((64, 64, 3))
     plane[..., 2] = 1.0
-    assert cal.flip_integrability(plane).value is None or not cal.flip_integrability(plane).tripped
+    plane += np.random.default_rng(0).normal(0.0, 0.05, plane.shape)
+    for n in (plane, plane * [1, -1, 1]):
+        f = cal.flip_integrability(n)
+        assert abs(f.value) < 4 and not f.tripped
 
 
 def test_no_mask_background_share() -> None:
