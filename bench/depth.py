@@ -19,8 +19,8 @@ import tracemalloc
 
 import numpy as np
 
-from worker import depth_scenes as S
-from worker.depth import integrate
+from maxfs.worker import depth_scenes as S
+from maxfs.worker.depth import integrate
 
 
 def _sizes(text: str) -> list[float]:

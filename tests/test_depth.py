@@ -17,13 +17,13 @@ import scipy.sparse.csgraph
 import scipy.sparse.linalg
 import zarr
 
-from storage.datasets import load_folder, write_npy_folder
-from storage.errors import InvalidInputError
-from storage.params import JobParams
+from maxfs.storage.datasets import write_npy_folder
+from maxfs.storage.errors import InvalidInputError
+from maxfs.storage.params import JobParams
+from maxfs.worker import depth_scenes as S
+from maxfs.worker import synthetic
+from maxfs.worker.depth import Camera, _laplacian, _structure, discontinuities, integrate, slopes
 from tests.procs import Server, poll_until
-from worker import depth_scenes as S
-from worker import synthetic
-from worker.depth import Camera, _laplacian, _structure, discontinuities, integrate, slopes
 
 MAXFS = str(Path(sys.executable).parent / "maxfs")
 
@@ -141,7 +141,7 @@ def test_perspective_depth_is_in_camera_units_given_the_distance() -> None:
 
 
 def test_discontinuities_and_the_mesh_leave_steps_open() -> None:
-    from service.export import grid_mesh
+    from maxfs.service.results.export import grid_mesh
 
     sc = S.step_ortho(64)
     depth = integrate(sc.normal, sc.mask, method="bini").depth
@@ -174,7 +174,7 @@ def test_discontinuities_and_the_mesh_leave_steps_open() -> None:
 
 
 def test_perspective_mesh_is_in_the_camera_frame() -> None:
-    from service.export import grid_mesh
+    from maxfs.service.results.export import grid_mesh
 
     sc = S.sphere_perspective(40)
     r = integrate(sc.normal, sc.mask, camera=sc.camera, distance=2.0)
@@ -222,34 +222,25 @@ def _scene(size: int = 40):
     return sc.images.astype(np.uint8), sc.lights, sc.mask
 
 
-def test_solve_gives_depth_by_name() -> None:
-    from worker.solve import solve
-
-    images, lights, mask = _scene(32)
-    plain = solve(images, lights, mask, eps=2.0, tile=32)
-    assert plain.depth is None  # the library's default: no depth
-    sol = solve(images, lights, mask, eps=2.0, tile=32, depth="bini", depth_k=3.0)
-    assert sol.depth is not None and sol.depth.method == "bini" and sol.depth.params["k"] == 3.0
-    want = integrate(sol.normal, mask, method="bini", k=3.0).depth
-    np.testing.assert_allclose(sol.depth.depth, want, atol=1e-6)  # BLAS sums may differ in the last bit
-    with pytest.raises(InvalidInputError, match="unknown depth method"):
-        solve(images, lights, mask, eps=2.0, depth="nope")
-
-
 @pytest.mark.slow
-def test_run_folder_records_method_and_camera_in_the_store(tmp_path: Path) -> None:
-    from service.local import run_folder
-    from storage.layout import JobStore
+def test_python_api_takes_the_depth_options_and_k_txt(tmp_path: Path) -> None:
+    import maxfs
+    from maxfs.storage.layout import JobStore
 
     images, lights, mask = _scene()
-    ds = load_folder(write_npy_folder(tmp_path / "in", images, lights, mask))
-    params = JobParams.build(eps=2.0, tile=32, depth="bini", fx=60.0, fy=60.0, cx=19.5, cy=19.5, distance=5.0)
-    store, _rec = run_folder(ds, tmp_path / "out.zarr", params)
-    a = JobStore.open(store.path, mode="r").array_meta("depth").attrs
-    assert a["method"] == "bini" and a["camera"] == "perspective" and a["fx"] == 60.0 and a["distance"] == 5.0
-    assert a["units"] == "camera units" and a["iterations"] >= 1
-    store2, _ = run_folder(ds, tmp_path / "none.zarr", JobParams.build(eps=2.0, tile=32, depth="none"))
-    assert not JobStore.open(store2.path, mode="r").has_array("depth")
+    r = maxfs.solve(images, lights, mask, eps=2.0, tile=32, depth="bini", depth_k=3.0, output=tmp_path / "a")
+    a = JobStore.open(r.path, mode="r").array_meta("depth").attrs
+    assert r.depth is not None and a["method"] == "bini" and a["k"] == 3.0 and a["camera"] == "orthographic"
+    np.testing.assert_allclose(r.depth, integrate(r.normal, mask, method="bini", k=3.0).depth, atol=1e-5)
+    assert maxfs.solve(images, lights, mask, eps=2.0, tile=32, depth="none").depth is None
+    with pytest.raises(InvalidInputError, match="unknown depth method"):
+        maxfs.solve(images, lights, mask, eps=2.0, depth="nope")
+    folder = write_npy_folder(tmp_path / "in", images, lights, mask)
+    (folder / "K.txt").write_text("60 0 19.5\n0 60 19.5\n0 0 1\n")
+    r = maxfs.solve_folder(folder, tmp_path / "b", eps=2.0, tile=32, distance=5.0)
+    a = JobStore.open(r.path, mode="r").array_meta("depth").attrs
+    assert a["method"] == "ls" and a["camera"] == "perspective" and a["fx"] == 60.0 and a["distance"] == 5.0
+    assert a["units"] == "camera units" and np.nanmax(r.depth) < 0  # camera-frame z: in front of it
 
 
 def _maxfs(*args: str, timeout: float = 300) -> subprocess.CompletedProcess:

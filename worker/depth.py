@@ -42,8 +42,8 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from storage.errors import InvalidInputError
-from storage.options import DEFAULT_DEPTH_K, DepthMethod
+from maxfs.storage.errors import InvalidInputError
+from maxfs.storage.options import DEFAULT_DEPTH_K, DepthMethod
 
 #: What each method is, as recorded with the depth.
 DESCRIPTIONS = {

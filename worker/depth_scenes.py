@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from worker.depth import Camera
+from maxfs.worker.depth import Camera
 
 
 @dataclass(frozen=True)

@@ -2,8 +2,8 @@
 
 Example
 -------
->>> from worker import synthetic
->>> from worker.solve import solve
+>>> from maxfs.worker import synthetic
+>>> from maxfs.worker.solve import solve
 >>> scene = synthetic.sphere(k=12, size=32)
 >>> sol = solve(scene.images, scene.lights, scene.mask, eps=1.0, saturation=255)
 >>> sol.normal.shape, sol.inliers.shape
@@ -19,30 +19,26 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from storage.errors import InvalidInputError
-from storage.observations import ObservationModel
-from storage.options import (
+from maxfs.storage.errors import InvalidInputError
+from maxfs.storage.observations import ObservationModel
+from maxfs.storage.options import (
     DEFAULT_BOX_FACTOR,
-    DEFAULT_DEPTH_K,
     DEFAULT_MAX_NODES,
     DEFAULT_MILP_TIME_LIMIT,
     MAX_LIGHT_CONDITION,
     MODEL_DEFAULTS,
-    DepthMethod,
     Estimate,
     Model,
     Solver,
-    check_depth_options,
     check_lights,
     check_options,
 )
-from storage.outputs import TILE_OUTPUTS, Source
-from storage.tiles import DEFAULT_TILE, Tile, tiles
-from worker.depth import Camera, DepthResult, integrate
-from worker.lstsq import channel_albedo, normal_albedo, refit
-from worker.noise import estimate_model
-from worker.problem import Thresholds, make_thresholds, shading, usable
-from worker.solvers import SOLVERS, Batch
+from maxfs.storage.outputs import TILE_OUTPUTS, Source
+from maxfs.storage.tiles import DEFAULT_TILE, Tile, tiles
+from maxfs.worker.lstsq import channel_albedo, normal_albedo, refit
+from maxfs.worker.noise import estimate_model
+from maxfs.worker.problem import Thresholds, make_thresholds, shading, usable
+from maxfs.worker.solvers import SOLVERS, Batch
 
 
 @dataclass(frozen=True)
@@ -73,7 +69,6 @@ class Solution:
     eps: float  # the eps used (estimated when eps="auto")
     source: NDArray[np.uint8]  # (H, W) how each normal was obtained (:class:`Source`)
     response: float = 1.0  # the response g used (estimated when response="auto")
-    depth: DepthResult | None = None  # integrated from the normals when asked (``depth=``)
 
 
 def solve_pixels(
@@ -353,12 +348,8 @@ def solve(
     drop_bright: float | None = None,
     dequantize: bool | None = None,
     fallback: bool | None = None,
-    depth: DepthMethod | str = DepthMethod.NONE,
-    depth_k: float = DEFAULT_DEPTH_K,
-    camera: Camera | None = None,
-    distance: float | None = None,
 ) -> Solution:
-    """Normals, albedo and inlier masks of a whole stack, in this process; depth when asked.
+    """Normals, albedo and inlier masks of a whole stack, in this process.
 
     Parameters
     ----------
@@ -391,13 +382,7 @@ def solve(
     dequantize
         Integer input: read a raw value ``v > 0`` as ``v + 0.5`` (see
         :class:`storage.observations.ObservationModel`).
-    depth, depth_k, camera, distance
-        Depth from the normals: ``"ls"``, ``"bini"`` or ``"none"`` (default here; ``maxfs run`` and HTTP
-        jobs default to ``"ls"``), bini's sharpness, a perspective :class:`worker.depth.Camera` (None:
-        orthographic) and the object's distance; see :func:`worker.depth.integrate`. The result is
-        ``Solution.depth``.
     """
-    check_depth_options(depth=str(depth), depth_k=depth_k, distance=None if camera is None else distance)
     arr = np.asarray(images)
     if arr.ndim not in (3, 4):
         raise InvalidInputError(f"images must be (k, H, W) or (k, H, W, C), got shape {arr.shape}")
@@ -464,9 +449,6 @@ def solve(
                     full[o.name][:, ys, xs] = getattr(r, o.name)
                 else:
                     full[o.name][ys, xs] = getattr(r, o.name)
-    dres = None
-    if depth != DepthMethod.NONE:
-        dres = integrate(full["normal"], m, method=depth, camera=camera, distance=distance, k=depth_k)
     return Solution(
         full["normal"],
         full["albedo"],
@@ -477,5 +459,5 @@ def solve(
         eps_v,
         full["source"],
         resp_v,
-        dres,
     )
+

@@ -1,0 +1,132 @@
+"""What researchers do with a finished job: evaluate against ground truth, integrate depth.
+
+``maxfs eval``, ``maxfs run --gt`` and the post-run step of ``maxfs run`` call these. Files written next
+to the arrays (``maxfs-eval.json``, ``previews/*.png``) are not Zarr and follow the job folder's other
+non-Zarr files (record, run log, previews).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from maxfs.storage.imageio import encode_png
+from maxfs.storage.layout import JobStore
+from maxfs.storage.options import DepthMethod
+from maxfs.worker.depth import Camera, DepthResult, integrate, relief_rgb
+from maxfs.worker.evaluate import Evaluation, error_map_rgb, evaluate, load_ground_truth
+
+EVAL_JSON = "maxfs-eval.json"
+ERROR_MAP = "angular_error.png"
+DEPTH_PREVIEW = "depth.png"
+
+
+def evaluate_store(
+    path: Path | str,
+    gt_path: Path | str,
+    *,
+    max_deg: float = 45.0,
+    map_path: Path | str | None = None,
+    json_path: Path | str | None = None,
+) -> tuple[Evaluation, Path, Path]:
+    """Evaluate a job store's normals against a ground-truth normal map.
+
+    Writes the error map PNG (default ``previews/angular_error.png``) and the statistics as JSON (default
+    ``maxfs-eval.json`` in the job folder); returns the statistics and both paths.
+    """
+    store = JobStore.open(Path(path), mode="r")
+    gt = load_ground_truth(gt_path)
+    ev, err = evaluate(store.read_output("normal"), gt)
+    map_path = Path(map_path) if map_path else store.path / "previews" / ERROR_MAP
+    map_path.parent.mkdir(parents=True, exist_ok=True)
+    map_path.write_bytes(encode_png(error_map_rgb(err, max_deg=max_deg, gt_mask=gt.mask)))
+    json_path = Path(json_path) if json_path else store.path / EVAL_JSON
+    doc = ev.to_json() | {"store": str(store.path), "error_map": str(map_path), "max_deg": max_deg}
+    done = store.done_grid()
+    doc["tiles_done"], doc["tiles_total"] = int(done.sum()), int(done.size)
+    json_path.write_text(json.dumps(doc, indent=1) + "\n")
+    return ev, map_path, json_path
+
+
+def find_ground_truth(folder: Path | str) -> Path | None:
+    """A dataset folder's own ground truth (DiLiGenT ``Normal_gt.mat``), if it has one."""
+    p = Path(folder) / "Normal_gt.mat"
+    return p if p.is_file() else None
+
+
+#: The camera intrinsics file a dataset folder may hold (3 rows of 3 numbers).
+INTRINSICS_FILE = "K.txt"
+
+
+def folder_camera(folder: Path | str) -> dict[str, float]:
+    """``{fx, fy, cx, cy}`` from a dataset folder's ``K.txt``, or ``{}`` when it has none."""
+    p = Path(folder) / INTRINSICS_FILE
+    if not p.is_file():
+        return {}
+    c = Camera.from_file(p)
+    return {"fx": c.fx, "fy": c.fy, "cx": c.cx, "cy": c.cy}
+
+
+def camera_of(options: dict) -> Camera | None:
+    """The perspective camera the options give (all of fx, fy, cx, cy), else None (orthographic)."""
+    if options.get("fx") is None:
+        return None
+    return Camera(options["fx"], options["fy"], options["cx"], options["cy"])
+
+
+def write_depth(
+    path: Path | str, normal: NDArray[np.floating] | None = None, **options: object
+) -> DepthResult | None:
+    """Integrate the store's normals (``normal``, when the caller has read them already) to ``depth``
+    (H, W) float32, write it into the store (replacing an earlier one) with the method, its parameters and
+    residual as its attributes, and ``previews/depth.png``.
+
+    ``options`` are the depth options by name (``depth``, ``depth_k``, ``fx``, ``fy``, ``cx``, ``cy``,
+    ``distance``, see :data:`storage.options.SOLVE_OPTIONS`); those not given are the job's. Returns None
+    (and writes nothing) for ``depth="none"``.
+    """
+    from maxfs.storage.options import check_depth_options
+
+    store = JobStore.open(Path(path), mode="r+")
+    opts = store.params.depth_options() | {k: v for k, v in options.items() if v is not None}
+    check_depth_options(**opts)
+    if opts["depth"] == DepthMethod.NONE:
+        return None
+    camera = camera_of(opts)
+    res = integrate(
+        store.read_output("normal") if normal is None else normal,
+        store.read_mask(),
+        method=opts["depth"],
+        camera=camera,
+        distance=opts["distance"],
+        k=opts["depth_k"],
+    )
+    what = (
+        "height toward the camera (z), up to a constant per connected piece (mean 0)"
+        if camera is None
+        else "camera-frame z (x right, y up, z toward the camera: minus the distance along the axis), "
+        + (
+            "scaled so each piece's geometric mean distance is the given distance"
+            if opts["distance"]
+            else "up to a scale per connected piece (geometric mean distance 1)"
+        )
+    )
+    store.write_depth(res.depth, res.attrs() | {"long_name": what})
+    d = store.path / "previews"
+    d.mkdir(exist_ok=True)
+    (d / DEPTH_PREVIEW).write_bytes(encode_png(relief_rgb(res.depth)))
+    return res
+
+
+def finish_results(path: Path | str) -> str:
+    """What follows a finished run: the depth map, by the job's method. Returns a note for the user."""
+    res = write_depth(path)
+    if res is None:
+        return "depth: none asked for"
+    return (
+        f"depth ({res.method}, {res.camera}): {res.pixels} pixels in {res.pieces} piece(s), "
+        f"residual RMS {res.residual_rms:.3g} px"
+    )
