@@ -336,7 +336,7 @@ SOLVE_OPTIONS: tuple[Option, ...] = (
         DepthMethod.LS.value,
         tuple(m.value for m in DepthMethod),
     ),
-    Option("depth_k", "float", f"bini's sharpness k (> 0; {DEFAULT_DEPTH_K:g}): larger keeps more jumps"),
+    Option("depth_k", "float", "bini's sharpness k (> 0): larger keeps more jumps", DEFAULT_DEPTH_K),
     Option("fx", "float", "perspective depth: focal length along x in pixels (with fy, cx, cy; or K.txt)"),
     Option("fy", "float", "perspective depth: focal length along y in pixels"),
     Option("cx", "float", "perspective depth: principal point, column in pixels"),
