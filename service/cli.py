@@ -252,6 +252,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from service.local import run_folder
     from storage.datasets import load_folder, write_npy_folder
     from storage.layout import JobStore
+    from storage.options import DEFAULT_EPS, DEFAULT_MODEL
     from storage.params import JobParams
     from worker import synthetic
 
@@ -264,7 +265,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
     store, rec = run_folder(
         load_folder(folder),
         out / "result",
-        JobParams.build(eps=1.0, tile=args.tile),
+        # the defaults of `maxfs run` (storage.options), so the demo shows what a run does
+        JobParams.build(eps=DEFAULT_EPS, model=DEFAULT_MODEL, tile=args.tile),
         workers=args.workers or Settings().workers,
         on_note=lambda note: print(note, file=sys.stderr),
         on_progress=_progress(),

@@ -79,6 +79,13 @@ class Thresholds:
         Share of each pixel's candidates, brightest first, that are outliers by definition.
     fallback
         Least squares on the non-zero unsaturated observations where Max-FS gives no normal.
+    shadow_slabs
+        A shadow (finite, unsaturated, ``<= shadow``) is the one-sided slab
+        ``L.n <= (max(I, 0) + t)^(1/g)``: an inlier when the light is (nearly) behind the
+        surface, never a least-squares row.
+    mirror_deg
+        Lit candidates whose half-vector lies within this angle of a first-pass normal
+        and that are brighter than it predicts are outliers (:mod:`worker.outliers`); 0: none.
     """
 
     eps: float
@@ -90,6 +97,8 @@ class Thresholds:
     min_shading: float | None = None
     drop_bright: float = 0.0
     fallback: bool = False
+    shadow_slabs: bool = False
+    mirror_deg: float = 0.0
 
 
 def make_thresholds(
@@ -141,6 +150,8 @@ def make_thresholds(
         min_shading=shadow_v if robust else None,
         drop_bright=float(d.drop_bright if drop_bright is None else drop_bright),
         fallback=bool(d.fallback if fallback is None else fallback),
+        shadow_slabs=d.shadow_slabs,
+        mirror_deg=d.mirror_deg,
     )
 
 
@@ -184,8 +195,16 @@ def slabs(
     t = th.eps + th.eps_rel * i if th.eps_rel else th.eps
     floor = th.eps if th.min_shading is None else th.min_shading
     a, b = np.maximum(i - t, floor), i + t
+    if th.shadow_slabs:
+        with np.errstate(invalid="ignore"):
+            dark = i <= th.shadow
+        a = np.where(dark, -np.inf, a)
+        b = np.where(dark, np.maximum(i, 0.0) + t, b)
     if th.response != 1.0:
-        a, b = a ** (1.0 / th.response), b ** (1.0 / th.response)
+        with np.errstate(invalid="ignore"):
+            a, b = np.where(a > -np.inf, a, 0.0) ** (1.0 / th.response), b ** (1.0 / th.response)
+        if th.shadow_slabs:
+            a = np.where(dark, -np.inf, a)
     return a, b
 
 
@@ -207,14 +226,25 @@ def candidates(
     """``(P, k)`` observations that may be inliers: :func:`usable`, not ``outlier``, of an
     ``active`` pixel, and not among the brightest ``drop_bright`` share of the pixel's
     candidates (``floor(drop_bright * m)`` of ``m``, never leaving fewer than 3; ties go
-    to the lower image index)."""
+    to the lower image index). With ``shadow_slabs`` the :func:`shadows` are candidates too.
+    """
     i = np.asarray(intensities, dtype=np.float64)
     valid = usable(i.T, th).T
+    if th.shadow_slabs:
+        valid |= shadows(i, th)
     if outlier is not None:
         valid &= ~np.asarray(outlier, dtype=bool)
     if active is not None:
         valid &= np.asarray(active, dtype=bool)[:, None]
     return drop_brightest(i, valid, th.drop_bright)
+
+
+def shadows(intensities: NDArray[np.floating], th: Thresholds) -> NDArray[np.bool_]:
+    """``(P, k)`` finite observations at or below the shadow threshold (the one-sided slabs
+    of ``shadow_slabs``); saturation thresholds above the shadow one keep them unsaturated."""
+    i = np.asarray(intensities, dtype=np.float64)
+    with np.errstate(invalid="ignore"):
+        return np.isfinite(i) & (i <= th.shadow)
 
 
 def drop_brightest(
@@ -239,5 +269,3 @@ def drop_brightest(
 def box_halfwidth(b: NDArray[np.float64], valid: NDArray[np.bool_], box_factor: float) -> float:
     """Half-width ``U`` of the box on ``n`` for one pixel."""
     return float(box_factor * (b[valid].max() if valid.any() else 1.0))
-
-
