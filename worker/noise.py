@@ -33,7 +33,9 @@ shadows and other outliers (under half) do not drive it.
   1.09 on DiLiGenT cat / cow / pot1, where the angular error is smallest for cat and pot1
   (cow keeps improving a little up to g ~ 2.5). Real captures deviate from Lambertian
   most where they are bright (sheen, lobes), which g > 1 compresses; g < 1 undoes a
-  display encoding such as sRGB.
+  display encoding such as sRGB. The chosen g is then **cross-validated by images**
+  (:func:`validated_response`): fitted without every other image, it must predict those
+  better than g = 1 on most sampled pixels, else g = 1 (linear synthetic scenes: always 1).
 
 Both use the pixels of :func:`worker.solve.eps_sample`, which depend on the image size
 and mask only, never on the tile grid, so every path gets the same numbers.

@@ -15,8 +15,8 @@ Two kinds of image are *outliers by definition*, never candidates:
   entirely by the clamp.
 * saturated: ``I_i >= saturation`` (the sensor's maximum); the true value is unknown.
 
-**Models.** ``paper`` is the formulation above, exactly. ``robust`` (the CLI and HTTP
-default) generalises it for real captures, and every part stays a set of k slabs
+**Models.** ``paper`` is the formulation above, exactly. ``robust`` (the default of the
+CLI, HTTP, :func:`worker.solve.solve` and ``maxfs demo``) generalises it for real captures, and every part stays a set of k slabs
 ``lo_i <= L_i . n <= hi_i``, so the optimum is still exact and checkable against the MILP:
 
 * tolerance growing with intensity: ``|I_i - s_i| <= t_i``, ``t_i = eps + eps_rel I_i``;
@@ -26,11 +26,14 @@ default) generalises it for real captures, and every part stays a set of k slabs
   the refit is least squares on ``I^(1/g)``;
 * shadows follow the noise: ``shadow = eps / 3`` (one noise sigma when eps is 3 sigma) and
   the clamp ``m`` is the shadow threshold (the paper's is ``eps``);
-* at each pixel the brightest ``drop_bright`` share (0.3) of the candidates (at least 3
-  are kept) are outliers by definition: likely specular or sheen that fits within the
-  tolerance. Measured (``bench/accuracy.py``, mean error): DiLiGenT cat 5.50 -> 5.10,
-  pot1 6.90 -> 6.07, cow 13.69 -> 14.41 (still ahead of least squares, 15.53), and
-  better on the three synthetic scenes;
+* a shadow is evidence (``shadow_slabs``): the sensor sees ``max(L.n, 0)``, so an
+  observation ``I <= shadow`` says ``L.n <= I + t``, the one-sided slab ``lo = -inf``. It
+  counts as an inlier where it holds (the optimum stays exact and MILP-checked), only where
+  a first-pass normal agrees the light is behind (else it is a cast shadow, an outlier), and
+  it never enters the least-squares refit (it bounds ``n``, it does not measure it);
+* near-mirror highlights (``mirror_deg``, :mod:`worker.outliers`): lit candidates whose
+  half-vector is within 20 degrees of a first-pass normal and that are brighter than it
+  predicts are outliers; each pixel keeps at least 6 lit candidates;
 * ``fallback``: a pixel with fewer than 3 candidates (or rank-deficient inliers) gets the
   least-squares fit on its non-zero, unsaturated observations instead of no normal.
 
