@@ -37,8 +37,8 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from worker import synthetic
-from worker.solve import solve
+from maxfs.worker import synthetic
+from maxfs.worker.solve import solve
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
@@ -66,7 +66,7 @@ def _diligent(name: str) -> Callable[[int, int], Loaded]:
         if "all" not in cache:
             import scipy.io
 
-            from storage.datasets import load_folder
+            from maxfs.storage.inputs import load_folder
 
             folder = DATA / "diligent-crop8" / f"{name}PNG"
             ds = load_folder(folder)

@@ -9,18 +9,18 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from storage.layout import JobSpec, JobStore
-from storage.observations import ObservationModel
-from storage.options import Estimate
-from storage.outputs import Source
-from storage.params import JobParams
-from worker import synthetic
-from worker.exact import exact_pixels
-from worker.milp import MilpSolver
-from worker.noise import estimate_eps, select_response
-from worker.problem import REL_TOL, candidates, make_thresholds, shading, slabs
-from worker.solve import eps_sample, solve, solve_pixels
-from worker.task import estimate_eps_of
+from maxfs.storage.layout import JobSpec, JobStore
+from maxfs.storage.observations import ObservationModel
+from maxfs.storage.options import Estimate
+from maxfs.storage.outputs import Source
+from maxfs.storage.params import JobParams
+from maxfs.worker import synthetic
+from maxfs.worker.exact import exact_pixels
+from maxfs.worker.milp import MilpSolver
+from maxfs.worker.noise import estimate_eps, select_response
+from maxfs.worker.problem import REL_TOL, candidates, make_thresholds, shading, slabs
+from maxfs.worker.solve import eps_sample, solve, solve_pixels
+from maxfs.worker.task import estimate_eps_of
 
 
 def _robust_pixels(k: int, seed: int, response: float, eps_rel: float, drop: float):
@@ -205,7 +205,7 @@ def test_shadow_inliers_count_for_the_optimum_but_not_the_refit() -> None:
 
 
 def test_near_mirror_rule_keeps_lambertian_and_few_image_pixels() -> None:
-    from worker.outliers import MIN_KEPT, half_vectors, near_mirror
+    from maxfs.worker.outliers import MIN_KEPT, half_vectors, near_mirror
 
     L = synthetic.lights_uniform(24)
     N = np.array([0.0, 0.0, 1.0])
@@ -224,7 +224,7 @@ def test_near_mirror_rule_keeps_lambertian_and_few_image_pixels() -> None:
 
 
 def test_response_is_kept_only_if_it_predicts_held_out_images_better() -> None:
-    from worker.noise import validated_response
+    from maxfs.worker.noise import validated_response
 
     sc = synthetic.sphere(24, 32, specular=0.0, bits=None, noise=0.5, seed=2)
     lin = np.maximum(sc.images[:, sc.mask].T, 0.0)
@@ -237,7 +237,7 @@ def test_response_is_kept_only_if_it_predicts_held_out_images_better() -> None:
 def test_solve_defaults_are_the_cli_and_http_defaults() -> None:
     import inspect
 
-    from storage.options import SOLVE_OPTIONS
+    from maxfs.storage.options import SOLVE_OPTIONS
 
     sig = inspect.signature(solve).parameters
     for opt in SOLVE_OPTIONS:

@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from worker.noise import lts_fit
+from maxfs.worker.noise import lts_fit
 
 #: A pixel keeps at least this many lit candidates (twice the 3 unknowns of ``n``).
 MIN_KEPT = 6

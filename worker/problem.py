@@ -16,8 +16,9 @@ Two kinds of image are *outliers by definition*, never candidates:
 * saturated: ``I_i >= saturation`` (the sensor's maximum); the true value is unknown.
 
 **Models.** ``paper`` is the formulation above, exactly. ``robust`` (the default of the
-CLI, HTTP, :func:`worker.solve.solve` and ``maxfs demo``) generalises it for real captures, and every part stays a set of k slabs
-``lo_i <= L_i . n <= hi_i``, so the optimum is still exact and checkable against the MILP:
+CLI, HTTP, :func:`worker.solve.solve` and ``maxfs demo``) generalises it for real captures,
+and every part stays a set of k slabs ``lo_i <= L_i . n <= hi_i``, so the optimum is still
+exact and checkable against the MILP:
 
 * tolerance growing with intensity: ``|I_i - s_i| <= t_i``, ``t_i = eps + eps_rel I_i``;
 * a camera/BRDF response ``I = s^g`` (``response`` g, estimated per job, 1 = Lambertian):
@@ -48,8 +49,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from storage.errors import InvalidInputError
-from storage.options import DEFAULT_BOX_FACTOR, MODEL_DEFAULTS, Model, check_options
+from maxfs.storage.errors import InvalidInputError
+from maxfs.storage.options import DEFAULT_BOX_FACTOR, MODEL_DEFAULTS, Model, check_options
 
 #: Relative tolerance for "point lies in slab"; scaled by the pixel's largest ``b_i``.
 REL_TOL = 1e-9
