@@ -145,6 +145,12 @@ class Settings:
     decode_slots: int = 2
     #: Open connections ``maxfs serve`` accepts at once; beyond that new ones get 503.
     max_connections: int = 1024
+    #: Open connections one client address may have; beyond that a new one gets 503 and is
+    #: closed before anything is read (:mod:`service.connections`). 0 = no limit.
+    max_connections_per_client: int = 64
+    #: Seconds a request head may take to arrive, from the connection's start or the previous
+    #: answer; a connection that sends its head slower (or nothing) is closed. 0 = no limit.
+    header_timeout: float = 10.0
     #: Longest side of a PNG preview; larger results are shown decimated.
     preview_max_edge: int = 1024
     #: Days a finished job (done, failed, cancelled), or one left created/uploading, is kept

@@ -1,0 +1,152 @@
+"""The shared server, round 3 (issue #24): slow clients, smuggled requests, full disks, fair
+share at job start, stalled downloads, odd numbers, static headers, hostile local files.
+
+Real processes: ``maxfs serve`` with auth, a Dask scheduler and two single-threaded workers.
+"""
+
+from __future__ import annotations
+
+import socket
+import threading
+import time
+
+import httpx
+import pytest
+
+from service.client import MaxfsClient
+from service.connections import is_smuggling
+from tests.procs import DaskCluster, Server
+
+#: the client address slow connections come from (all of 127/8 is loopback on Linux)
+OTHER_HOST = "127.0.0.2"
+
+
+@pytest.fixture(scope="module")
+def cluster(module_dask_cluster: DaskCluster) -> DaskCluster:
+    return module_dask_cluster
+
+
+@pytest.fixture(scope="module")
+def server(cluster: DaskCluster, module_server_factory, tmp_path_factory: pytest.TempPathFactory) -> Server:
+    """150 connections at most, 50 per client address, 2 s for a request head."""
+    tmp = tmp_path_factory.mktemp("shared")
+    env = {
+        "MAXFS_MIN_FREE_BYTES": "0",
+        "MAXFS_MAX_OPEN_JOBS": "50",
+        "MAXFS_TILE_RETRIES": "0",
+        "MAXFS_MAX_CONNECTIONS": "150",
+        "MAXFS_MAX_CONNECTIONS_PER_CLIENT": "50",
+        "MAXFS_HEADER_TIMEOUT": "2",
+    }
+    s = module_server_factory(tmp / "data", cluster.address, logs=tmp, auth=True, env=env)
+    s.tmp = tmp
+    s.tokens = {u: s.token(u) for u in ("alice", "bob", "carol")}
+    return s
+
+
+def _client(server: Server, user: str) -> MaxfsClient:
+    if user not in server.tokens:
+        server.tokens[user] = server.token(user)
+    return MaxfsClient(server.url, token=server.tokens[user], timeout=120)
+
+
+def _addr(server: Server) -> tuple[str, int]:
+    host, port = server.url.removeprefix("http://").split(":")
+    return host, int(port)
+
+
+def _read_all(s: socket.socket, timeout: float) -> tuple[bytes, bool]:
+    """What the server sends on ``s`` until it closes (True) or ``timeout`` s pass (False)."""
+    s.settimeout(timeout)
+    out = b""
+    try:
+        while True:
+            chunk = s.recv(65536)
+            if not chunk:
+                return out, True
+            out += chunk
+    except TimeoutError:
+        return out, False
+    except ConnectionResetError:
+        return out, True
+
+
+# -- 1. slow clients ----------------------------------------------------------------------------
+
+
+def test_smuggling_rule_needs_both_framings() -> None:
+    assert is_smuggling([(b"Content-Length", b"4"), (b"Transfer-Encoding", b"chunked")])
+    assert not is_smuggling([(b"content-length", b"4")])
+    assert not is_smuggling([(b"transfer-encoding", b"chunked")])
+
+
+@pytest.mark.slow
+def test_slow_and_silent_clients_do_not_lock_others_out(server: Server) -> None:
+    """200 connections from one address (more than MAXFS_MAX_CONNECTIONS=150): half send a
+    request head one line every 0.5 s, half nothing. Another client's authenticated requests
+    are answered at once meanwhile, and every slow connection is closed within the 2 s head
+    deadline (plus slack), or refused at once past the per-address cap."""
+    addr = _addr(server)
+    socks: list[socket.socket] = []
+    for i in range(200):
+        s = socket.create_connection(addr, timeout=10, source_address=(OTHER_HOST, 0))
+        if i % 2 == 0:
+            s.sendall(b"GET /jobs HTTP/1.1\r\nHost: x\r\n")
+        socks.append(s)
+    opened = time.monotonic()
+    stop = threading.Event()
+
+    def drip() -> None:  # one more header line every 0.5 s on the slow half
+        n = 0
+        while not stop.wait(0.5):
+            n += 1
+            for s in socks[::2]:
+                try:
+                    s.sendall(f"X-Slow-{n}: y\r\n".encode())
+                except OSError:
+                    pass
+
+    t = threading.Thread(target=drip, daemon=True)
+    t.start()
+    took: list[float] = []
+    try:
+        headers = {"Authorization": f"Bearer {server.tokens['alice']}"}
+        for _ in range(20):  # a new connection each time, as a browser's or the CLI's first request
+            t0 = time.perf_counter()
+            r = httpx.get(server.url + "/jobs", headers=headers, timeout=30)
+            took.append(time.perf_counter() - t0)
+            assert r.status_code == 200, r.text
+            time.sleep(0.05)
+        closed = []
+        for s in socks:
+            _, gone = _read_all(s, max(0.1, 6 - (time.monotonic() - opened)))
+            closed.append(gone)
+    finally:
+        stop.set()
+        t.join(timeout=10)
+        for s in socks:
+            s.close()
+    print(f"200 slow/silent connections: slowest of 20 answers {max(took) * 1e3:.0f} ms")
+    assert max(took) < 1.0, took
+    assert all(closed), f"{closed.count(False)} slow connections still open 6 s after they opened"
+
+
+# -- 2. request smuggling -----------------------------------------------------------------------
+
+
+@pytest.mark.slow
+def test_content_length_with_transfer_encoding_is_refused_and_the_connection_closed(server: Server) -> None:
+    token = server.tokens["alice"]
+    smuggled = (
+        f"POST /jobs HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer {token}\r\n"
+        "Content-Type: application/json\r\nContent-Length: 5\r\nTransfer-Encoding: chunked\r\n\r\n"
+        "0\r\n\r\n"
+        "GET /health HTTP/1.1\r\nHost: x\r\n\r\n"
+    ).encode()
+    with socket.create_connection(_addr(server), timeout=10) as s:
+        s.sendall(smuggled)
+        out, closed = _read_all(s, 10)
+    assert out.startswith(b"HTTP/1.1 400 "), out[:200]
+    assert b"Content-Length and Transfer-Encoding" in out
+    assert out.count(b"HTTP/1.1 ") == 1, out  # the pipelined /health was not answered
+    assert closed
