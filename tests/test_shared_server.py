@@ -6,16 +6,23 @@ Real processes: ``maxfs serve`` with auth, a Dask scheduler and two single-threa
 
 from __future__ import annotations
 
+import errno
+import os
 import socket
+import subprocess
 import threading
 import time
+from collections.abc import Iterator
+from pathlib import Path
 
 import httpx
+import numpy as np
 import pytest
 
 from service.client import MaxfsClient
 from service.connections import is_smuggling
-from tests.procs import DaskCluster, Server
+from tests.procs import DaskCluster, Server, poll_until
+from worker import synthetic
 
 #: the client address slow connections come from (all of 127/8 is loopback on Linux)
 OTHER_HOST = "127.0.0.2"
@@ -150,3 +157,83 @@ def test_content_length_with_transfer_encoding_is_refused_and_the_connection_clo
     assert b"Content-Length and Transfer-Encoding" in out
     assert out.count(b"HTTP/1.1 ") == 1, out  # the pipelined /health was not answered
     assert closed
+
+
+# -- 3. a full disk -----------------------------------------------------------------------------
+
+
+@pytest.fixture
+def small_disk(tmp_path: Path) -> Iterator[Path]:
+    """A 24 MB tmpfs (a file system that really fills), unmounted at teardown."""
+    mnt = tmp_path / "disk"
+    mnt.mkdir()
+    if os.geteuid() != 0:
+        pytest.skip("mounting a small file system needs root")
+    subprocess.run(["mount", "-t", "tmpfs", "-o", "size=24m", "tmpfs", str(mnt)], check=True)
+    try:
+        yield mnt
+    finally:
+        subprocess.run(["umount", "-l", str(mnt)], check=False)
+
+
+def _fill(folder: Path) -> Path:
+    """Write zeros into ``folder`` until its file system is full; the file, to free it again."""
+    filler = folder / "filler"
+    with open(filler, "wb", buffering=0) as f:
+        try:
+            while True:
+                f.write(b"\0" * (1 << 16))
+        except OSError as e:
+            assert e.errno == errno.ENOSPC, e
+    return filler
+
+
+@pytest.mark.slow
+def test_a_disk_that_fills_mid_run_fails_the_job_and_a_start_resumes_it(
+    small_disk: Path, cluster: DaskCluster, server_factory
+) -> None:
+    # the disk budget is told of a huge disk, so the writes themselves meet the full disk
+    env = {"MAXFS_MIN_FREE_BYTES": "0", "MAXFS_TILE_RETRIES": "0", "MAXFS_FAULT": f"free-bytes:{1 << 40}"}
+    s = server_factory(small_disk / "data", cluster.address, auth=True, env=env)
+    with MaxfsClient(s.url, token=s.token("dora"), timeout=120) as c:
+        sc = synthetic.bump_scene(12, 64, seed=3)
+        jid = c.create_job(
+            k=12, height=64, width=64, lights=sc.lights.tolist(), eps=2.0, solver="milp", tile=16
+        )["id"]
+        later = c.create_job(k=12, height=64, width=64, lights=sc.lights.tolist(), eps=2.0)["id"]
+        for i in range(12):
+            c.upload_image(jid, i, sc.images[i].astype(np.uint8))
+        c.start(jid)
+        poll_until(lambda: c.status(jid)["tiles_done"], 120, "a first tile finished")
+        filler = _fill(small_disk)
+        try:
+            st = poll_until(
+                lambda: c.status(jid),
+                60,
+                "the job to stop",
+                until=lambda st: st["state"] not in ("queued", "running"),
+            )
+            assert st["state"] == "failed" and "disk filled up" in st["error"], st
+            # an upload that meets the full disk: the documented 507 JSON
+            r = httpx.put(
+                f"{s.url}/jobs/{later}/images/0",
+                content=sc.images[0].astype(np.uint8).tobytes(),
+                headers={"Authorization": c.http.headers["Authorization"]},
+                timeout=60,
+            )
+            assert r.status_code == 507, r.text
+            assert r.json()["error"] == "InsufficientStorageError" and "disk is full" in r.json()["detail"]
+        finally:
+            filler.unlink()
+        c.start(jid)  # space is back: the job resumes from its finished tiles
+        st = c.wait(jid, poll=0.2, timeout=180)
+        assert st["state"] == "done" and st["tiles_done"] == st["tiles_total"], st
+
+
+def test_disk_full_means_enospc_or_quota_and_not_our_own_507() -> None:
+    from storage.errors import InsufficientStorageError, is_disk_full
+
+    assert is_disk_full(OSError(errno.ENOSPC, "No space left on device"))
+    assert is_disk_full(OSError(errno.EDQUOT, "Disk quota exceeded"))
+    assert not is_disk_full(OSError(errno.EACCES, "Permission denied"))
+    assert not is_disk_full(InsufficientStorageError("ours, answered by its own handler"))
