@@ -78,18 +78,19 @@ async def run_job(
     held = 0  # ranks of this job's tiles in its user's backlog (service.fairness), not yet released
     try:
         # a worker must see this very store (a shared filesystem) before any task reads it
-        await check_store_visible(client, job_dir, rec.id)
+        prep = fair.prep_priority(user) if fair is not None else 0
+        await check_store_visible(client, job_dir, rec.id, priority=prep)
         params = store.params
         if params.eps is None:
             key = f"maxfs-eps-{rec.id}-{uuid.uuid4().hex[:8]}"
             try:
                 eps = await result(
-                    client.submit(estimate_store_eps, str(job_dir), key=key, pure=False, retries=retries)
+                    client.submit(
+                        estimate_store_eps, str(job_dir), key=key, pure=False, retries=retries, priority=prep
+                    )
                 )
             except Exception as e:
-                raise RuntimeError(
-                    f"estimating eps and the response failed: {type(e).__name__}: {e}"
-                ) from e
+                raise RuntimeError(f"estimating eps and the response failed: {type(e).__name__}: {e}") from e
             params = resolve_eps(store, eps)
         rec.eps = params.eps
         # many small reads (one per tile): in a thread, so the server keeps answering meanwhile
@@ -105,7 +106,7 @@ async def run_job(
         unfinished = [grid[int(i)] for i in (~done).nonzero()[0]]
         todo = [t.index for t in await asyncio.to_thread(store.by_masked_pixels, unfinished)]
         # in batches (one message each), yielding to the event loop between them; each batch's
-        # priority is minus its rank in the user's backlog, so users share the workers
+        # priority is minus its last tile's rank in the user's backlog, so users share the workers
         for b in range(0, len(todo), FAIR_BATCH):
             batch = todo[b : b + FAIR_BATCH]
             keys = [f"maxfs-tile-{rec.id}-{i}-{nonce}" for i in batch]
@@ -121,7 +122,7 @@ async def run_job(
                 key=keys,
                 pure=False,
                 retries=retries,
-                priority=-rank,
+                priority=FairShare.batch_priority(rank, n),
             )
             for key, fut, i in zip(keys, futs, batch, strict=True):
                 futures[key] = fut

@@ -18,6 +18,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
+from distributed import Client
 
 from service.client import MaxfsClient
 from service.connections import is_smuggling
@@ -237,3 +238,78 @@ def test_disk_full_means_enospc_or_quota_and_not_our_own_507() -> None:
     assert is_disk_full(OSError(errno.EDQUOT, "Disk quota exceeded"))
     assert not is_disk_full(OSError(errno.EACCES, "Permission denied"))
     assert not is_disk_full(InsufficientStorageError("ours, answered by its own handler"))
+
+
+# -- 4. fair share from the first task of a job ---------------------------------------------------
+
+
+def _started(stream: list[dict], prefix: str) -> list[float]:
+    """When each task whose key starts with ``prefix`` began computing (worker clock)."""
+    return sorted(
+        ss["start"]
+        for t in stream
+        if str(t["key"]).startswith(prefix)
+        for ss in t["startstops"]
+        if ss["action"] == "compute"
+    )
+
+
+@pytest.mark.slow
+def test_a_small_job_started_later_overtakes_two_large_ones_from_its_first_task(
+    server: Server, cluster: DaskCluster
+) -> None:
+    """Two users start 16-tile jobs (tiles of about a second on the two workers); a third
+    starts a 1-tile job with eps "auto" 2 s later. Its store check, eps estimate and tile
+    rank ahead of the large jobs' queued tiles, so its tile runs before the last tile of either
+    large job begins (the order as the scheduler's task stream recorded it)."""
+    sc = synthetic.bump_scene(12, 64, seed=4)
+    big = {}
+    for user in ("ada", "ben"):
+        c = _client(server, user)
+        jid = c.create_job(
+            k=12, height=64, width=64, lights=sc.lights.tolist(), eps=2.0, solver="milp", tile=16
+        )["id"]
+        for i in range(12):
+            c.upload_image(jid, i, sc.images[i].astype(np.uint8))
+        big[user] = (c, jid)
+    small = _client(server, "cyd")
+    sid = small.create_job(k=12, height=16, width=16, lights=sc.lights.tolist(), solver="milp", tile=16)["id"]
+    for i in range(12):
+        small.upload_image(sid, i, np.ascontiguousarray(sc.images[i, :16, :16]).astype(np.uint8))
+    with Client(cluster.address, timeout=30) as dc:
+        dc.get_task_stream()  # from now on the scheduler records when each task runs
+        for c, jid in big.values():
+            c.start(jid)
+        time.sleep(2)
+        t_small = time.time()
+        small.start(sid)
+        st = small.wait(sid, poll=0.1, timeout=300)
+        assert st["state"] == "done", st
+        for c, jid in big.values():
+            assert c.wait(jid, poll=0.2, timeout=300)["state"] == "done"
+        stream = dc.get_task_stream(start=t_small - 5)
+    (tile_began,) = _started(stream, f"maxfs-tile-{sid}-")
+    assert _started(stream, f"maxfs-eps-{sid}-") and _started(stream, f"maxfs-probe-{sid}-")
+    overtook = [
+        t
+        for _, jid in big.values()
+        for t in _started(stream, f"maxfs-tile-{jid}-")
+        if t_small < t < tile_began
+    ]
+    first_done = min(max(_started(stream, f"maxfs-tile-{jid}-")) for _, jid in big.values())
+    print(
+        f"small job's tile began {tile_began - t_small:.1f} s after its start, "
+        f"{len(overtook)} large-job tiles began meanwhile; the first large job's last tile "
+        f"began at {first_done - t_small:.1f} s"
+    )
+    assert tile_began < first_done
+
+
+def test_a_newcomers_first_tiles_and_preparation_outrank_queued_batches() -> None:
+    from service.fairness import BATCH, FairShare
+
+    fair = FairShare()
+    old = FairShare.batch_priority(fair.take("ada", BATCH), BATCH)  # ada's first batch, queued
+    assert fair.prep_priority("cyd") > old  # cyd's store check and eps estimate
+    assert FairShare.batch_priority(fair.take("cyd", 1), 1) > old  # and cyd's one tile
+    assert fair.prep_priority("ada") < FairShare.batch_priority(0, 1)  # ada's next job waits its turn
