@@ -82,6 +82,7 @@ class JobManager:
         fake = s.fault.removeprefix("free-bytes:") if s.fault.startswith("free-bytes:") else None
         self.disk = DiskBudget(self.root, s.min_free_bytes, None if fake is None else int(fake))
         self.uploads = UploadSlots(s.max_uploads_per_user)
+        self.downloads = UploadSlots(s.max_downloads_per_user, "downloads", "MAXFS_MAX_DOWNLOADS_PER_USER")
         self.decoder = Decoder(s.decode_slots)
         #: quota and disk checks (service.quotas)
         self.limits = JobLimits(s, self.index, self.disk, self._record_or_none)

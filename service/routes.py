@@ -17,6 +17,7 @@ from fastapi.responses import JSONResponse, Response, StreamingResponse
 
 from service import openapi as api
 from service.auth import make_auth, user_of
+from service.guards import HeldStream
 from service.jobs import TEMP_PREFIX, JobManager
 from service.models import PARTIAL_HEADER, CreateJob, solve_options, status_body
 from service.previews import HTTP_PREVIEWS, inputs_of
@@ -240,7 +241,8 @@ class JobRoutes:
                 f"({self.s.max_result_bytes / 2**20:.0f} MiB); fetch results.zip (`maxfs fetch`) instead"
             )
         # streamed from the store in bands (service.streams): a slow reader holds one band
-        return StreamingResponse(
+        return self._stream(
+            request,
             npy_pieces(store, name),
             media_type="application/octet-stream",
             headers={
@@ -248,6 +250,16 @@ class JobRoutes:
                 "Content-Length": str(npy_size(meta)),
             }
             | headers,
+        )
+
+    def _stream(self, request: Request, pieces: Any, **kw: Any) -> HeldStream:
+        """A streamed answer in one of the user's download slots (429 when all are taken)."""
+        return HeldStream(
+            pieces,
+            slots=self.m.downloads,
+            user=user_of(request).name,
+            idle_timeout=self.s.download_idle_timeout,
+            **kw,
         )
 
     async def preview(
@@ -300,7 +312,8 @@ class JobRoutes:
         store = self.m.store(job_id)
         files = await asyncio.to_thread(store.download_files, inputs)
         # made while it is sent (service.streams): no temporary copy on any disk, one piece in memory
-        return StreamingResponse(
+        return self._stream(
+            request,
             zip_pieces(files, folder=store.path),
             media_type="application/zip",
             headers={"Content-Disposition": f'attachment; filename="{job_id}.zarr.zip"'} | headers,

@@ -141,6 +141,11 @@ class Settings:
     upload_idle_timeout: float = 60.0
     #: Uploads (image or mask bodies) one user may have in flight at once (429 beyond).
     max_uploads_per_user: int = 8
+    #: Streamed downloads (NPY arrays, results.zip) one user may have in flight at once (429
+    #: beyond): each holds a piece of its answer in memory while its reader is slow.
+    max_downloads_per_user: int = 4
+    #: Seconds a download's reader may take nothing before the download is dropped.
+    download_idle_timeout: float = 60.0
     #: Encoded images (PNG/TIFF) decoded at once, in threads, each bounded by its job's image size.
     decode_slots: int = 2
     #: Open connections ``maxfs serve`` accepts at once; beyond that new ones get 503.

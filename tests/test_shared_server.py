@@ -36,7 +36,8 @@ def cluster(module_dask_cluster: DaskCluster) -> DaskCluster:
 
 @pytest.fixture(scope="module")
 def server(cluster: DaskCluster, module_server_factory, tmp_path_factory: pytest.TempPathFactory) -> Server:
-    """150 connections at most, 50 per client address, 2 s for a request head."""
+    """150 connections at most, 50 per client address, 2 s for a request head; 4 downloads
+    per user, dropped after 3 s without a read."""
     tmp = tmp_path_factory.mktemp("shared")
     env = {
         "MAXFS_MIN_FREE_BYTES": "0",
@@ -45,6 +46,8 @@ def server(cluster: DaskCluster, module_server_factory, tmp_path_factory: pytest
         "MAXFS_MAX_CONNECTIONS": "150",
         "MAXFS_MAX_CONNECTIONS_PER_CLIENT": "50",
         "MAXFS_HEADER_TIMEOUT": "2",
+        "MAXFS_MAX_DOWNLOADS_PER_USER": "4",
+        "MAXFS_DOWNLOAD_IDLE_TIMEOUT": "3",
     }
     s = module_server_factory(tmp / "data", cluster.address, logs=tmp, auth=True, env=env)
     s.tmp = tmp
@@ -313,3 +316,82 @@ def test_a_newcomers_first_tiles_and_preparation_outrank_queued_batches() -> Non
     assert fair.prep_priority("cyd") > old  # cyd's store check and eps estimate
     assert FairShare.batch_priority(fair.take("cyd", 1), 1) > old  # and cyd's one tile
     assert fair.prep_priority("ada") < FairShare.batch_priority(0, 1)  # ada's next job waits its turn
+
+
+# -- 5. stalled downloads -----------------------------------------------------------------------
+
+
+def _rss_kb(pid: int, key: str) -> int:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith(key + ":"):
+            return int(line.split()[1])
+    raise KeyError(key)
+
+
+@pytest.mark.slow
+def test_stalled_downloads_are_capped_per_user_and_dropped(server: Server) -> None:
+    H = W = 1024  # normal.npy: 12 MiB
+    patch = synthetic.sphere(6, 64)
+    with _client(server, "dan") as c:
+        jid = c.create_job(k=6, height=H, width=W, lights=patch.lights.tolist(), eps=2.0)["id"]
+        for i in range(6):
+            img = np.zeros((H, W), np.uint8)
+            img[480:544, 480:544] = patch.images[i].astype(np.uint8)
+            c.upload_image(jid, i, img)
+        mask = np.zeros((H, W), bool)
+        mask[480:544, 480:544] = patch.mask
+        c.upload_mask(jid, mask)
+        c.start(jid)
+        assert c.wait(jid, poll=0.2, timeout=120)["state"] == "done"
+    pid = server.proc.pid
+    Path(f"/proc/{pid}/clear_refs").write_text("5")  # VmHWM := VmRSS
+    before = _rss_kb(pid, "VmRSS")
+    head = (
+        f"GET /jobs/{jid}/results/normal.npy HTTP/1.1\r\nHost: x\r\n"
+        f"Authorization: Bearer {server.tokens['dan']}\r\n\r\n"
+    ).encode()
+    socks = []
+    for _ in range(30):  # one user, 30 downloads that never read
+        s = socket.socket()
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+        s.connect(_addr(server))
+        s.sendall(head)
+        socks.append(s)
+    try:
+        statuses = []
+        for s in socks:
+            s.settimeout(10)
+            statuses.append(int(s.recv(12)[9:12]))
+        took = []
+        with _client(server, "bob") as other:
+            for _ in range(10):
+                t0 = time.perf_counter()
+                assert httpx.get(server.url + "/health", timeout=30).status_code == 200
+                other.jobs()
+                took.append(time.perf_counter() - t0)
+        grew = (_rss_kb(pid, "VmHWM") - before) / 1024
+    finally:
+        for s in socks:
+            s.close()
+    print(
+        f"30 stalled downloads: {statuses.count(200)} served, slowest /health + list "
+        f"{max(took) * 1e3:.0f} ms, server +{grew:.0f} MB"
+    )
+    assert statuses.count(200) == 4 and statuses.count(429) == 26, statuses
+    assert max(took) < 1.0, took
+    assert grew < 80, f"the server grew {grew:.0f} MB"  # 4 downloads of 2 pieces (4 MiB) each, and the rest
+    # a stalled reader is dropped after 3 s without reading: its slot is free again
+    stalled = [socket.create_connection(_addr(server)) for _ in range(4)]
+    for s in stalled:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+        s.sendall(head)
+    time.sleep(1)
+    hdr = {"Authorization": f"Bearer {server.tokens['dan']}"}
+    assert httpx.get(f"{server.url}/jobs/{jid}/results/normal.npy", headers=hdr).status_code == 429
+    time.sleep(4)
+    try:
+        r = httpx.get(f"{server.url}/jobs/{jid}/results/normal.npy", headers=hdr, timeout=60)
+        assert r.status_code == 200 and len(r.content) > H * W * 3 * 4
+    finally:
+        for s in stalled:
+            s.close()
