@@ -12,7 +12,7 @@ import asyncio
 import hashlib
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Depends, Path, Request, Security
+from fastapi import APIRouter, Depends, Path, Query, Request, Security
 from fastapi.responses import JSONResponse, Response, StreamingResponse
 
 from service import openapi as api
@@ -166,10 +166,14 @@ class JobRoutes:
         body = self._body(request, rec.id)
         return JSONResponse(body, status_code=201, headers={"Location": body["links"]["self"]})
 
-    async def list_jobs(self, request: Request) -> list[dict[str, Any]]:
-        """All jobs, oldest first."""
+    async def list_jobs(
+        self,
+        request: Request,
+        mine: Annotated[bool, Query(description="only the caller's own jobs (for an admin too)")] = False,
+    ) -> list[dict[str, Any]]:
+        """The caller's jobs (an admin's: everyone's, unless ``mine=true``), oldest first."""
         base = str(request.base_url).rstrip("/")
-        return [status_body(r, base) for r in self.m.list_jobs(user_of(request))]
+        return [status_body(r, base) for r in self.m.list_jobs(user_of(request), everyone=not mine)]
 
     async def status(self, job_id: str, request: Request) -> dict[str, Any]:
         """State, progress (tiles, pixels/s, ETA, certified share) and error reason of a job."""

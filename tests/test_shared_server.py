@@ -395,3 +395,35 @@ def test_stalled_downloads_are_capped_per_user_and_dropped(server: Server) -> No
     finally:
         for s in stalled:
             s.close()
+
+
+# -- 6. an admin's submit -----------------------------------------------------------------------
+
+
+@pytest.mark.slow
+def test_an_admins_submit_never_adopts_another_users_job(server: Server, tmp_path: Path) -> None:
+    from storage.datasets import write_npy_folder
+
+    sc = synthetic.sphere(6, 32)
+    folder = write_npy_folder(tmp_path / "in", sc.images.astype(np.uint8), sc.lights, sc.mask)
+    with _client(server, "amy") as amy:
+        real = amy.upload_image
+
+        def cut(job_id: str, index: int, image: np.ndarray) -> dict:
+            if index == 1:
+                raise KeyboardInterrupt  # Ctrl-C after one image
+            return real(job_id, index, image)
+
+        amy.upload_image = cut  # type: ignore[method-assign]
+        with pytest.raises(KeyboardInterrupt):
+            amy.submit_folder(folder, eps=2.0)
+        (hers,) = amy.jobs()
+    with MaxfsClient(server.url, token=server.token("root", admin=True), timeout=120) as admin:
+        assert hers["id"] in {j["id"] for j in admin.jobs()}  # the admin sees it, same label
+        mine = admin.submit_folder(folder, eps=2.0)
+        assert mine != hers["id"]
+        assert admin.status(mine)["owner"] == "root"
+        assert [j["id"] for j in admin.jobs(mine=True)] == [mine]
+    with _client(server, "amy") as amy:
+        st = amy.status(hers["id"])
+        assert st["state"] == "uploading" and st["uploaded"] == 1, st
