@@ -67,7 +67,7 @@ class JobRoutes:
             name="list",
             summary="List jobs",
             **doc,
-            responses=api.job_list_answer(),
+            responses=api.job_list_answer() | api.errors(422),
         )
         r.add_api_route(
             "/{job_id}",
@@ -119,7 +119,7 @@ class JobRoutes:
             name="zip",  # the operationId stays zip_jobs__job_id__results_zip_get
             summary="Download the results as a zip",
             **binary,
-            responses=api.ZIP_ANSWER | api.errors(404, 409, 422),
+            responses=api.ZIP_ANSWER | api.errors(404, 409, 422, 429),
         )
         r.add_api_route(
             "/{job_id}/results/{name}.npy",
@@ -127,7 +127,7 @@ class JobRoutes:
             methods=["GET"],
             summary="Download an output array (NPY)",
             **binary,
-            responses=api.NPY_ANSWER | api.errors(404, 409, 413, 422),
+            responses=api.NPY_ANSWER | api.errors(404, 409, 413, 422, 429),
         )
         r.add_api_route(
             "/{job_id}/previews/{name}.png",
