@@ -17,7 +17,7 @@ from fastapi import FastAPI
 from service.dashboard import check_dashboard
 from service.docs import install_docs
 from service.error_handlers import install_error_handlers
-from service.guards import RequestGuard
+from service.guards import NoSniff, RequestGuard
 from service.jobs import JobManager
 from service.models import Health
 from service.page import install_page
@@ -53,6 +53,7 @@ def create_app(settings: Settings | None = None, manager: JobManager | None = No
     app.include_router(JobRoutes(manager, settings, tokens).router)
     # the token before any body is read; JSON bodies capped (service.guards)
     app.add_middleware(RequestGuard, settings=settings, tokens=tokens)
+    app.add_middleware(NoSniff)  # outermost: the guard's own error answers get it too
     install_docs(app)
     install_page(app)
     install_error_handlers(app)  # service.statuses: one table from error class to status

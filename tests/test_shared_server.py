@@ -427,3 +427,24 @@ def test_an_admins_submit_never_adopts_another_users_job(server: Server, tmp_pat
     with _client(server, "amy") as amy:
         st = amy.status(hers["id"])
         assert st["state"] == "uploading" and st["uploaded"] == 1, st
+
+
+# -- 8. nosniff everywhere ------------------------------------------------------------------------
+
+
+@pytest.mark.slow
+def test_every_answer_says_nosniff(server: Server) -> None:
+    hdr = {"Authorization": f"Bearer {server.tokens['alice']}"}
+    for path, auth in [
+        ("/static/page/page.js", False),
+        ("/static/page/page.css", False),
+        ("/static/page/icon.svg", False),
+        ("/static/docs/swagger-ui.css", False),
+        ("/health", False),
+        ("/openapi.json", False),
+        ("/jobs", True),
+        ("/jobs", False),  # 401
+        ("/no/such/route", False),  # 404
+    ]:
+        r = httpx.get(server.url + path, headers=hdr if auth else {}, timeout=30)
+        assert r.headers.get("x-content-type-options") == "nosniff", (path, r.status_code, dict(r.headers))
