@@ -160,6 +160,7 @@ class JobRoutes:
             lights=req.lights,
             intensities=req.intensities,
         ).validate()
+        self.m.limits.check_size(spec)  # before the automatic tile is computed from the size
         opts = solve_options(req)
         params = JobParams.build(**opts | {"tile": self.m.resolve_tile(spec, req.tile, req.solver)})
         rec = self.m.create(spec, params, user_of(request), label=req.label)

@@ -448,3 +448,21 @@ def test_every_answer_says_nosniff(server: Server) -> None:
     ]:
         r = httpx.get(server.url + path, headers=hdr if auth else {}, timeout=30)
         assert r.headers.get("x-content-type-options") == "nosniff", (path, r.status_code, dict(r.headers))
+
+
+# -- 7. odd numbers -------------------------------------------------------------------------------
+
+
+@pytest.mark.slow
+def test_a_huge_size_with_the_automatic_tile_is_refused_by_the_pixel_cap(server: Server) -> None:
+    hdr = {"Authorization": f"Bearer {server.tokens['alice']}"}
+    lights = synthetic.lights_uniform(6).tolist()
+    for height in (10**400, 10**12):
+        r = httpx.post(
+            server.url + "/jobs",
+            json={"k": 6, "height": height, "width": 10, "lights": lights, "tile": "auto"},
+            headers=hdr,
+            timeout=30,
+        )
+        assert r.status_code == 413, r.text  # MAXFS_MAX_PIXELS, as any job too large; not a 500
+        assert r.json()["error"] == "PayloadTooLargeError" and "MAXFS_MAX_PIXELS" in r.json()["detail"]
