@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from storage.errors import InvalidInputError
+from storage.options import MAX_PIXELS
 from storage.tiles import DEFAULT_TASK_MEMORY
 
 LOOPBACK = ("127.0.0.1", "::1", "localhost")
@@ -114,7 +115,7 @@ class Settings:
     #: Most images per job.
     max_k: int = 1000
     #: Most pixels per image (H x W).
-    max_pixels: int = 64_000_000
+    max_pixels: int = MAX_PIXELS
     #: Most jobs per user that are not finished (created, uploading, queued or running).
     max_open_jobs: int = 8
     #: Free disk space the server keeps in reserve: a job or upload that would eat into it gets 507.

@@ -466,3 +466,66 @@ def test_a_huge_size_with_the_automatic_tile_is_refused_by_the_pixel_cap(server:
         )
         assert r.status_code == 413, r.text  # MAXFS_MAX_PIXELS, as any job too large; not a 500
         assert r.json()["error"] == "PayloadTooLargeError" and "MAXFS_MAX_PIXELS" in r.json()["detail"]
+
+
+# -- 9. hostile local files -----------------------------------------------------------------------
+
+
+def _png_declaring(size: int) -> bytes:
+    """A valid grey 8-bit PNG of ``size`` x ``size`` zeros: a few hundred kB that decode to
+    ``size**2`` bytes."""
+    import struct
+    import zlib
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+    z, row, parts = zlib.compressobj(9), b"\0" * (size + 1), []
+    for _ in range(size):
+        parts.append(z.compress(row))
+    parts.append(z.flush())
+    ihdr = struct.pack(">IIBBBBB", size, size, 8, 0, 0, 0, 0)
+    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", b"".join(parts)) + chunk(b"IEND", b"")
+
+
+def _pickled_npy(path: Path) -> Path:
+    np.save(path, np.array([{"not": "numbers"}], dtype=object), allow_pickle=True)
+    return path
+
+
+def test_local_readers_refuse_pickles_and_declared_giants_from_the_header(tmp_path: Path) -> None:
+    from storage.errors import InvalidInputError, PayloadTooLargeError
+    from storage.imageio import decode_bytes, load_npy
+
+    with pytest.raises(InvalidInputError, match="pickled"):
+        load_npy(_pickled_npy(tmp_path / "gt.npy"))
+    head = _png_declaring(2000)[:4096].replace((2000).to_bytes(4, "big"), (20000).to_bytes(4, "big"))
+    t0 = time.perf_counter()
+    with pytest.raises(PayloadTooLargeError, match="declares 20000 x 20000"):
+        decode_bytes(head)  # the header is all it reads (the CRC does not match: never looked at)
+    assert time.perf_counter() - t0 < 1.0
+
+
+@pytest.mark.slow
+def test_maxfs_eval_on_hostile_ground_truth_says_why_and_exits_2(tmp_path: Path) -> None:
+    from storage.layout import JobSpec, JobStore
+    from storage.params import JobParams
+    from tests.procs import BIN
+
+    sc = synthetic.sphere(6, 32)
+    spec = JobSpec(k=6, height=32, width=32, channels=None, dtype="uint8", lights=sc.lights.tolist())
+    JobStore.create(tmp_path / "job.zarr", spec, JobParams.build(eps=2.0, tile=32))
+    bomb = tmp_path / "gt.png"
+    bomb.write_bytes(_png_declaring(20000))
+    for gt, says in [(_pickled_npy(tmp_path / "gt.npy"), "pickled"), (bomb, "declares 20000 x 20000")]:
+        t0 = time.perf_counter()
+        out = subprocess.run(
+            [str(BIN / "maxfs"), "eval", str(tmp_path / "job.zarr"), "--gt", str(gt)],
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
+        took = time.perf_counter() - t0
+        assert out.returncode == 2, out.stderr
+        assert says in out.stderr and "Traceback" not in out.stderr, out.stderr
+        print(f"maxfs eval --gt {gt.name}: exit 2 in {took:.1f} s")
