@@ -16,8 +16,9 @@ from pathlib import Path
 import httpx
 import numpy as np
 
-from service.client import MaxfsClient
-from worker import synthetic
+from maxfs.service.cli.client import MaxfsClient
+from maxfs.worker import synthetic
+from tests.faults import fault_env
 
 
 def _kb(pid: int, key: str) -> int:
@@ -164,7 +165,8 @@ def full_disk(start_server, tmp: Path) -> dict:
     subprocess.run(["mount", "-t", "tmpfs", "-o", "size=24m", "tmpfs", str(mnt)], check=True)
     server = None
     try:
-        env = {"MAXFS_MIN_FREE_BYTES": "0", "MAXFS_TILE_RETRIES": "0", "MAXFS_FAULT": f"free-bytes:{1 << 40}"}
+        # the disk budget is told of a huge disk, so the writes themselves meet the full disk
+        env = {"MAXFS_MIN_FREE_BYTES": "0", "MAXFS_TILE_RETRIES": "0", **fault_env(free_bytes=1 << 40)}
         server = start_server(mnt / "data", env)
         with MaxfsClient(server.url, token=server.token("dora"), timeout=120) as c:
             sc = synthetic.bump_scene(12, 64, seed=3)

@@ -15,12 +15,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from storage.errors import InvalidInputError
-from storage.options import MAX_PIXELS
-from storage.tiles import DEFAULT_TASK_MEMORY
+from maxfs.storage.errors import InvalidInputError
+from maxfs.storage.options import MAX_PIXELS
+from maxfs.storage.tiles import DEFAULT_TASK_MEMORY
 
 LOOPBACK = ("127.0.0.1", "::1", "localhost")
-#: Where tiles run (:mod:`service.cluster`).
+#: Where tiles run (:mod:`service.runs.cluster`).
 KINDS = ("local", "slurm", "address")
 ENV_PREFIX = "MAXFS_"
 _TRUE = frozenset({"1", "true", "t", "yes", "y", "on"})
@@ -65,7 +65,7 @@ class Settings:
 
     #: Where job stores live (one folder per job under ``jobs/``) and the token file.
     data_dir: Path = Path("maxfs-data")
-    #: Where tiles run (:mod:`service.cluster`): "local" (embedded LocalCluster), "slurm" (worker
+    #: Where tiles run (:mod:`service.runs.cluster`): "local" (embedded LocalCluster), "slurm" (worker
     #: jobs through dask-jobqueue) or "address" (``scheduler``); empty = "address" when
     #: ``scheduler`` is set, else "local".
     cluster: str = ""
@@ -152,7 +152,7 @@ class Settings:
     #: Open connections ``maxfs serve`` accepts at once; beyond that new ones get 503.
     max_connections: int = 1024
     #: Open connections one client address may have; beyond that a new one gets 503 and is
-    #: closed before anything is read (:mod:`service.connections`). 0 = no limit.
+    #: closed before anything is read (:mod:`service.http.connections`). 0 = no limit.
     max_connections_per_client: int = 64
     #: Seconds a request head may take to arrive, from the connection's start or the previous
     #: answer; a connection that sends its head slower (or nothing) is closed. 0 = no limit.
@@ -165,16 +165,6 @@ class Settings:
     #: Server URL and API token used by ``maxfs submit/status/fetch/cancel``.
     server: str = "http://127.0.0.1:8000"
     token: str = ""
-    #: Tests only: a fault to inject ("pause-mask-write": a mask write stops after its first
-    #: band for a minute, so a test can kill the server mid-write; "free-bytes:N": the disk
-    #: has N bytes free, whatever it really has). Empty in real use.
-    fault: str = ""
-    #: Tests only: tile indices, ","-separated (e.g. "3,5"), whose tile task raises a clear error
-    #: before it reads its input; "@FILE": the indices in FILE, while it exists (so a test can clear
-    #: the fault without a restart). The tile task reads ``MAXFS_TEST_FAIL_TILES`` itself, in the
-    #: worker's environment (:mod:`worker.task`; an embedded cluster's workers inherit the
-    #: server's). Empty in real use.
-    test_fail_tiles: str = ""
 
     def __init__(self, **given: Any) -> None:
         fields = {f.name: f for f in dataclasses.fields(self)}
@@ -215,7 +205,7 @@ def cluster_kind(settings: Settings) -> str:
 
 
 def cluster_settings(scheduler: str = "", workers: int = 2, cluster: str = "") -> Settings:
-    """The ``MAXFS_*`` settings with the cluster the command line chose (see :mod:`service.cluster`)."""
+    """The ``MAXFS_*`` settings with the cluster the command line chose (see :mod:`service.runs.cluster`)."""
     return Settings().replace(scheduler=scheduler, workers=workers, cluster=cluster)
 
 

@@ -20,10 +20,11 @@ import numpy as np
 import pytest
 from distributed import Client
 
-from service.client import MaxfsClient
-from service.connections import is_smuggling
+from maxfs.service.cli.client import MaxfsClient
+from maxfs.service.http.connections import is_smuggling
+from maxfs.worker import synthetic
+from tests.faults import fault_env
 from tests.procs import DaskCluster, Server, poll_until
-from worker import synthetic
 
 #: the client address slow connections come from (all of 127/8 is loopback on Linux)
 OTHER_HOST = "127.0.0.2"
@@ -197,7 +198,7 @@ def test_a_disk_that_fills_mid_run_fails_the_job_and_a_start_resumes_it(
     small_disk: Path, cluster: DaskCluster, server_factory
 ) -> None:
     # the disk budget is told of a huge disk, so the writes themselves meet the full disk
-    env = {"MAXFS_MIN_FREE_BYTES": "0", "MAXFS_TILE_RETRIES": "0", "MAXFS_FAULT": f"free-bytes:{1 << 40}"}
+    env = {"MAXFS_MIN_FREE_BYTES": "0", "MAXFS_TILE_RETRIES": "0", **fault_env(free_bytes=1 << 40)}
     s = server_factory(small_disk / "data", cluster.address, auth=True, env=env)
     with MaxfsClient(s.url, token=s.token("dora"), timeout=120) as c:
         sc = synthetic.bump_scene(12, 64, seed=3)
@@ -235,7 +236,7 @@ def test_a_disk_that_fills_mid_run_fails_the_job_and_a_start_resumes_it(
 
 
 def test_disk_full_means_enospc_or_quota_and_not_our_own_507() -> None:
-    from storage.errors import InsufficientStorageError, is_disk_full
+    from maxfs.storage.errors import InsufficientStorageError, is_disk_full
 
     assert is_disk_full(OSError(errno.ENOSPC, "No space left on device"))
     assert is_disk_full(OSError(errno.EDQUOT, "Disk quota exceeded"))
@@ -309,7 +310,7 @@ def test_a_small_job_started_later_overtakes_two_large_ones_from_its_first_task(
 
 
 def test_a_newcomers_first_tiles_and_preparation_outrank_queued_batches() -> None:
-    from service.fairness import BATCH, FairShare
+    from maxfs.service.runs.fairness import BATCH, FairShare
 
     fair = FairShare()
     old = FairShare.batch_priority(fair.take("ada", BATCH), BATCH)  # ada's first batch, queued
@@ -402,7 +403,7 @@ def test_stalled_downloads_are_capped_per_user_and_dropped(server: Server) -> No
 
 @pytest.mark.slow
 def test_an_admins_submit_never_adopts_another_users_job(server: Server, tmp_path: Path) -> None:
-    from storage.datasets import write_npy_folder
+    from maxfs.storage.datasets import write_npy_folder
 
     sc = synthetic.sphere(6, 32)
     folder = write_npy_folder(tmp_path / "in", sc.images.astype(np.uint8), sc.lights, sc.mask)
@@ -494,8 +495,8 @@ def _pickled_npy(path: Path) -> Path:
 
 
 def test_local_readers_refuse_pickles_and_declared_giants_from_the_header(tmp_path: Path) -> None:
-    from storage.errors import InvalidInputError, PayloadTooLargeError
-    from storage.imageio import decode_bytes, load_npy
+    from maxfs.storage.errors import InvalidInputError, PayloadTooLargeError
+    from maxfs.storage.imageio import decode_bytes, load_npy
 
     with pytest.raises(InvalidInputError, match="pickled"):
         load_npy(_pickled_npy(tmp_path / "gt.npy"))
@@ -508,8 +509,8 @@ def test_local_readers_refuse_pickles_and_declared_giants_from_the_header(tmp_pa
 
 @pytest.mark.slow
 def test_maxfs_eval_on_hostile_ground_truth_says_why_and_exits_2(tmp_path: Path) -> None:
-    from storage.layout import JobSpec, JobStore
-    from storage.params import JobParams
+    from maxfs.storage.layout import JobSpec, JobStore
+    from maxfs.storage.params import JobParams
     from tests.procs import BIN
 
     sc = synthetic.sphere(6, 32)

@@ -1,0 +1,164 @@
+"""CLI verbs for jobs on a server (``jobs``, ``wait``, ``start``, human ``status``) and the progress display.
+
+Progress: a tqdm bar on a terminal; elsewhere (logs, CI, pipes) plain lines, one per 10 % of the tiles
+or per 30 s, never carriage returns.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from typing import Any
+
+from maxfs.storage.records import FINAL_STATES, JobState
+
+
+def _hms(seconds: float | None) -> str:
+    if seconds is None:
+        return "--"
+    return time.strftime("%H:%M:%S", time.gmtime(max(seconds, 0)))
+
+
+def format_status(st: dict[str, Any]) -> str:
+    """One line for a job's status as the server reports it."""
+    p = st.get("progress") or {}
+    done, total = p.get("tiles_done", 0), p.get("tiles_total", 0)
+    frac = done / total if total else 0.0
+    rate = p.get("pixels_per_second")
+    parts = [st["id"], f"{st['state']:<9}", f"tiles {done}/{total} ({frac:.0%})"]
+    if rate:
+        parts.append(f"{rate / 1e3:.1f}k px/s")
+    if st["state"] in (JobState.QUEUED, JobState.RUNNING):
+        parts.append(f"ETA {_hms(p.get('eta_seconds'))}")
+    if p.get("solved_share") is not None and st["state"] in FINAL_STATES:
+        parts.append(f"solved {p['solved_share']:.1%}, certified {p.get('certified_share') or 0:.1%}")
+    if st.get("eps") is not None:
+        parts.append(f"eps {st['eps']:.4g}")
+    line = "  ".join(parts)
+    if st.get("error"):
+        line += f"\n  error: {st['error']}"
+    for w in st.get("warnings") or ():
+        line += f"\n  warning: {w}"
+    return line
+
+
+class Progress:
+    """Tiles done out of total: tqdm on a terminal, plain lines otherwise."""
+
+    def __init__(self, stream: Any = None, every: float = 30.0) -> None:
+        self.stream = stream or sys.stderr
+        self.tty = bool(getattr(self.stream, "isatty", lambda: False)())
+        self.bar = None
+        self.every = every
+        self.last_line = 0.0
+        self.last_decile = -1
+        self.closed = False
+
+    def update(self, done: int, total: int, state: str, rate: float | None = None, eta: float | None = None):
+        if self.closed:
+            return
+        info = f"{state}" + (f", {rate / 1e3:.1f}k px/s" if rate else "")
+        if self.tty:
+            from tqdm import tqdm
+
+            if self.bar is None and total:
+                self.bar = tqdm(total=total, unit="tile", file=self.stream, dynamic_ncols=True, leave=True)
+            if self.bar is not None:
+                self.bar.n = done
+                self.bar.set_postfix_str(info, refresh=False)
+                self.bar.refresh()
+        else:
+            decile = int(10 * done / total) if total else 0
+            now = time.monotonic()
+            if decile != self.last_decile or now - self.last_line >= self.every or state in FINAL_STATES:
+                frac = done / total if total else 0.0
+                eta_s = f", ETA {_hms(eta)}" if eta is not None and state not in FINAL_STATES else ""
+                print(f"{done}/{total} tiles ({frac:.0%}), {info}{eta_s}", file=self.stream, flush=True)
+                self.last_decile, self.last_line = decile, now
+        if state in FINAL_STATES:
+            self.close()
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+            self.bar = None
+        self.closed = True
+
+    # adapters
+    def record(self, rec: Any) -> None:
+        """``on_progress`` for :func:`service.runs.local.run_store` (a JobRecord)."""
+        eta = None
+        if rec.pixel_rate and rec.pixels_total > rec.pixels_done:
+            eta = (rec.pixels_total - rec.pixels_done) / rec.pixel_rate
+        self.update(rec.tiles_done, rec.tiles_total, rec.state.value, rec.pixel_rate, eta)
+
+    def status(self, st: dict[str, Any]) -> None:
+        """``on_status`` for :meth:`service.cli.client.MaxfsClient.wait` (a status body)."""
+        p = st.get("progress") or {}
+        self.update(
+            p.get("tiles_done", 0),
+            p.get("tiles_total", 0),
+            st["state"],
+            p.get("pixels_per_second"),
+            p.get("eta_seconds"),
+        )
+
+
+def _client(args: argparse.Namespace):
+    from maxfs.service.cli.common import make_client as make
+
+    return make(args)
+
+
+def cmd_status(args: argparse.Namespace) -> int:
+    with _client(args) as c:
+        st = c.status(args.job_id)
+    print(json.dumps(st, indent=1) if args.json else format_status(st))
+    return 0
+
+
+def cmd_jobs(args: argparse.Namespace) -> int:
+    with _client(args) as c:
+        jobs = c.jobs()
+    if args.json:
+        print(json.dumps(jobs, indent=1))
+    elif not jobs:
+        print("no jobs", file=sys.stderr)
+    else:
+        for st in jobs:
+            print(format_status(st))
+    return 0
+
+
+def wait_and_report(c: Any, job_id: str, as_json: bool) -> int:
+    from maxfs.service.cli.common import EXIT_NOT_DONE
+
+    st = c.wait(job_id, on_status=Progress().status)
+    print(json.dumps(st, indent=1) if as_json else format_status(st))
+    return 0 if st["state"] == JobState.DONE else EXIT_NOT_DONE
+
+
+def cmd_wait(args: argparse.Namespace) -> int:
+    with _client(args) as c:
+        return wait_and_report(c, args.job_id, args.json)
+
+
+def cmd_start(args: argparse.Namespace) -> int:
+    with _client(args) as c:
+        st = c.start(args.job_id)
+        if args.wait:
+            return wait_and_report(c, args.job_id, args.json)
+    print(json.dumps(st, indent=1) if args.json else f"{args.job_id} {st['state']}")
+    return 0
+
+
+def version() -> str:
+    from importlib.metadata import PackageNotFoundError
+    from importlib.metadata import version as v
+
+    try:
+        return v("maxfs-ps")
+    except PackageNotFoundError:
+        return "unknown"
