@@ -530,3 +530,32 @@ def test_maxfs_eval_on_hostile_ground_truth_says_why_and_exits_2(tmp_path: Path)
         assert out.returncode == 2, out.stderr
         assert says in out.stderr and "Traceback" not in out.stderr, out.stderr
         print(f"maxfs eval --gt {gt.name}: exit 2 in {took:.1f} s")
+
+
+def test_eps_and_saturation_are_checked_at_start_with_the_jobs_own_model(tmp_path: Path) -> None:
+    """A robust job (shadow eps/3) with eps 1 and saturation 0.5 passes creation; resolving its
+    response at start checks the same rule, not the paper model's shadow (eps)."""
+    from maxfs.service.runs.progress import resolve_eps
+    from maxfs.storage.layout import JobSpec, JobStore
+    from maxfs.storage.options import Estimate
+    from maxfs.storage.params import JobParams
+
+    sc = synthetic.sphere(6, 32)
+    spec = JobSpec(k=6, height=32, width=32, channels=None, dtype="uint8", lights=sc.lights.tolist())
+    params = JobParams.build(eps=1.0, saturation=0.5, model="robust", tile=32)
+    store = JobStore.create(tmp_path / "job.zarr", spec, params)
+    got = resolve_eps(store, Estimate(eps=1.0, response=1.0, sigma=0.0))
+    assert got.eps == 1.0 and got.saturation == 0.5
+
+
+@pytest.mark.slow
+def test_a_job_created_with_eps_and_saturation_runs_as_created(server: Server) -> None:
+    sc = synthetic.sphere(6, 32)
+    with _client(server, "sal") as c:
+        meta = {"k": 6, "height": 32, "width": 32, "dtype": "float32", "lights": sc.lights.tolist()}
+        jid = c.create_job(**meta, eps=1, saturation=0.5, model="robust")["id"]
+        for i in range(6):
+            c.upload_image(jid, i, (sc.images[i] / 255).astype(np.float32))
+        c.start(jid)
+        st = c.wait(jid, poll=0.2, timeout=120)
+        assert st["state"] == "done", st
