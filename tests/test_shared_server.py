@@ -559,3 +559,30 @@ def test_a_job_created_with_eps_and_saturation_runs_as_created(server: Server) -
         c.start(jid)
         st = c.wait(jid, poll=0.2, timeout=120)
         assert st["state"] == "done", st
+
+
+def test_an_intensity_near_float32s_maximum_is_no_observation() -> None:
+    from maxfs.worker.problem import MAX_INTENSITY, make_thresholds, usable
+
+    th = make_thresholds(3, 0.01)
+    got = usable(np.array([[0.5], [3e38], [MAX_INTENSITY * 0.5]]), th)
+    assert got.ravel().tolist() == [True, False, True]
+
+
+@pytest.mark.slow
+def test_a_huge_float_pixel_is_left_unsolved_not_solved_to_infinity(server: Server) -> None:
+    sc = synthetic.sphere(6, 32)
+    images = (sc.images / 255).astype(np.float32)
+    images[:, 16, 16] = 3e38  # every image: the pixel has no usable observation
+    with _client(server, "huw") as c:
+        meta = {"k": 6, "height": 32, "width": 32, "dtype": "float32", "lights": sc.lights.tolist()}
+        jid = c.create_job(**meta, eps=0.01, model="paper")["id"]
+        for i in range(6):
+            c.upload_image(jid, i, images[i])
+        c.start(jid)
+        assert c.wait(jid, poll=0.2, timeout=120)["state"] == "done"
+        albedo = c.fetch_array(jid, "albedo")
+        normal = c.fetch_array(jid, "normal")
+    assert np.isfinite(albedo).all(), albedo[16, 16]
+    assert np.isnan(normal[16, 16]).all() and albedo[16, 16] == 0
+    assert np.isfinite(normal[sc.mask & (np.arange(32)[:, None] != 16)]).mean() > 0.9
