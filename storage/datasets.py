@@ -27,6 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from maxfs.storage.errors import DatasetError, InvalidInputError
+from maxfs.storage.imageio import load_npy
 from maxfs.storage.imageio import read_image as _decode_file
 from maxfs.storage.options import DTYPES, check_lights
 
@@ -234,7 +235,7 @@ def npy_stack(folder: Path) -> Dataset:
         raise DatasetError(f"{folder}/images.npy has dtype {stack.dtype}; use one of {', '.join(DTYPES)}")
     k = stack.shape[0]
     if (folder / "lights.npy").exists():
-        raw = np.load(folder / "lights.npy").astype(np.float64)
+        raw = load_npy(folder / "lights.npy").astype(np.float64)
     else:
         raw = _read_matrix(folder / "lights.txt", 3, "light directions")
     lights = _lights(raw, k, folder)
@@ -242,10 +243,10 @@ def npy_stack(folder: Path) -> Dataset:
     for nm in ("intensities.npy", "intensities.txt"):
         p = folder / nm
         if p.exists():
-            inten = np.load(p) if nm.endswith(".npy") else np.loadtxt(p, ndmin=2)
+            inten = load_npy(p) if nm.endswith(".npy") else np.loadtxt(p, ndmin=2)
     mask = None
     if (folder / "mask.npy").exists():
-        mask = np.load(folder / "mask.npy").astype(bool)
+        mask = load_npy(folder / "mask.npy").astype(bool)
     elif (folder / "mask.png").exists():
         mask = _mask_from(folder / "mask.png")
     return _probe(

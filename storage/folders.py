@@ -24,6 +24,7 @@ from numpy.typing import NDArray
 
 from maxfs.storage.datasets import Dataset, _existing, _lights, _mask_from, _probe, _read_matrix, read_image
 from maxfs.storage.errors import DatasetError, InvalidInputError
+from maxfs.storage.imageio import load_npy
 from maxfs.storage.options import (
     DTYPES,
     WARN_LIGHT_CONDITION,
@@ -58,7 +59,7 @@ def _read_lights(folder: Path, k: int) -> tuple[NDArray[np.float64], NDArray[np.
     lf = lights_file(folder)
     if lf is None:
         raise DatasetError(f"{folder}: no lights file; add light_directions.txt (k lines of x y z)")
-    raw = np.load(lf).astype(np.float64) if lf.suffix == ".npy" else _read_matrix(lf, 3, "light directions")
+    raw = load_npy(lf).astype(np.float64) if lf.suffix == ".npy" else _read_matrix(lf, 3, "light directions")
     lights = _lights(raw, k, lf)
     inten, used = None, [lf]
     for n in INTENSITY_FILES:

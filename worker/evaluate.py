@@ -71,7 +71,9 @@ def load_ground_truth(path: Path | str) -> GroundTruth:
             )
         return _from_vectors(m[cands[0]], str(path))
     if suffix == ".npy":
-        return _from_vectors(np.load(path, allow_pickle=False), str(path))
+        from maxfs.storage.imageio import load_npy
+
+        return _from_vectors(load_npy(path, f"ground truth {path}"), str(path))
     from maxfs.storage.imageio import read_image
 
     img = read_image(path)

@@ -112,8 +112,9 @@ class MaxfsClient:
         (:meth:`status` gives the body as a dict)."""
         return JobStatus.model_validate(self.status(job_id))
 
-    def jobs(self) -> list[dict[str, Any]]:
-        return self._call("GET", "/jobs").json()
+    def jobs(self, mine: bool = False) -> list[dict[str, Any]]:
+        """The jobs this token may see (an admin's: everyone's), or with ``mine`` only its own."""
+        return self._call("GET", "/jobs", params={"mine": "true"} if mine else None).json()
 
     def job_list(self) -> list[JobStatus]:
         """The jobs this token may see, oldest first, as typed models (:meth:`jobs`: as dicts)."""
@@ -220,7 +221,14 @@ class MaxfsClient:
         found = None
         if label is not None:
             found = next(
-                (j for j in self.jobs() if j.get("label") == label and j["state"] not in FINAL_STATES), None
+                # only this user's own jobs: an admin's list holds everyone's, and a job of
+                # another user with the same label (the same folder) is not this submit's
+                (
+                    j
+                    for j in self.jobs(mine=True)
+                    if j.get("label") == label and j["state"] not in FINAL_STATES
+                ),
+                None,
             )
         if found is not None and found["state"] in (JobState.QUEUED, JobState.RUNNING):
             return found["id"]

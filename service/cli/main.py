@@ -320,8 +320,12 @@ def cmd_serve(args: argparse.Namespace) -> int:
             f"`maxfs token create NAME --data-dir {settings.data_dir}` (or serve with --no-auth on loopback)",
             file=sys.stderr,
         )
+    from maxfs.service.http.connections import guarded_protocol
+
+    _raise_open_files_limit()
     uvicorn.run(
         create_app(settings),
+        http=guarded_protocol(settings.header_timeout, settings.max_connections_per_client),
         host=settings.host,
         port=settings.port,
         log_level="info",
@@ -330,6 +334,19 @@ def cmd_serve(args: argparse.Namespace) -> int:
         timeout_keep_alive=5,
     )
     return 0
+
+
+def _raise_open_files_limit() -> None:
+    """Raise the soft limit of open files to the hard one: every connection is a file, and the
+    usual soft limit (1024) is below ``MAXFS_MAX_CONNECTIONS`` plus the server's own files."""
+    import resource
+
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    if soft != hard:
+        try:
+            resource.setrlimit(resource.RLIMIT_NOFILE, (hard, hard))
+        except (ValueError, OSError):
+            pass
 
 
 def _serve_logging() -> dict:
