@@ -48,7 +48,7 @@ class ErrorBody(BaseModel):
 
 
 class Progress(BaseModel):
-    """How far a job is; shares are over the masked pixels of the finished tiles."""
+    """How far a job is; shares are over all masked pixels (unfinished ones count as not solved)."""
 
     model_config = OPEN
 
@@ -59,9 +59,11 @@ class Progress(BaseModel):
     pixels_total: int = Field(description="masked pixels")
     pixels_per_second: float | None = Field(None, description="masked pixels per second in this run")
     eta_seconds: float | None = Field(None, description="seconds left at the current rate (running jobs)")
-    solved_share: float | None = Field(None, description="share of finished masked pixels with a normal")
+    solved_share: float | None = Field(
+        None, description="share of all masked pixels with a normal (unfinished tiles count as not solved)"
+    )
     certified_share: float | None = Field(
-        None, description="share of finished masked pixels whose optimum was proved"
+        None, description="share of all masked pixels whose optimum was proved"
     )
 
 
@@ -72,6 +74,11 @@ class ResultsInfo(BaseModel):
 
     available: bool = Field(description="false until the job is first started (results answer 409)")
     partial: bool = Field(description="true while the job is not done (unfinished tiles hold fill values)")
+    note: str = Field("", description="what the results are, in words (the job page shows it)")
+    resumable: bool = Field(
+        True,
+        description="false for a failed job: a resume with the same inputs and options fails the same way",
+    )
 
 
 class Links(BaseModel):
@@ -201,6 +208,28 @@ def solve_options(req: BaseModel) -> dict[str, Any]:
     return {o.name: v for o in SOLVE_OPTIONS if (v := getattr(req, o.name)) is not None}
 
 
+def results_note(rec: JobRecord) -> str:
+    """What a job's results are, said on its page: never "not started" for a job that ran."""
+    n, of = rec.tiles_done, rec.tiles_total
+    if rec.state is JobState.DONE:
+        return ""
+    if rec.state is JobState.FAILED:
+        got = f"partial results: {n} of {of} tiles finished" if n else "no results: no tile finished"
+        return (
+            f"The job failed ({got}); the error above says why. Resuming it with the same inputs and "
+            "options would fail the same way, so submit it again with other options."
+        )
+    if rec.state is JobState.CANCELLED:
+        if not n:
+            return "No results: the job was cancelled before any tile finished."
+        return f"Partial results: cancelled after {n} of {of} tiles; Resume goes on from there."
+    if rec.state in (JobState.CREATED, JobState.UPLOADING):
+        return "No results yet: the job has not been started."
+    if not n:
+        return f"No results yet: the job is {rec.state.value}."
+    return f"Partial results: {n} of {of} tiles so far."
+
+
 def status_body(
     rec: JobRecord, base: str, uploaded: int | None = None, k: int | None = None
 ) -> dict[str, Any]:
@@ -222,7 +251,12 @@ def status_body(
     }
     body["warnings"] = rec.warnings()
     # results are complete only when done; before the first start there are none at all
-    body["results"] = {"available": rec.started_at is not None, "partial": rec.state is not JobState.DONE}
+    body["results"] = {
+        "available": rec.started_at is not None,
+        "partial": rec.state is not JobState.DONE,
+        "note": results_note(rec),
+        "resumable": rec.state is not JobState.FAILED,
+    }
     if uploaded is not None:
         body["uploaded"] = uploaded
         body["k"] = k

@@ -22,7 +22,7 @@ import numpy as np
 import tifffile
 from numpy.typing import NDArray
 
-from storage.datasets import Dataset, _existing, _lights, _mask_from, _probe, _read_matrix, read_image
+from storage.datasets import Dataset, _existing, _lights, _mask_from, _probe, _read_matrix, labels, read_image
 from storage.errors import DatasetError, InvalidInputError
 from storage.options import DTYPES, WARN_LIGHT_CONDITION, check_lights, light_condition, light_singular_values
 
@@ -141,6 +141,7 @@ def plain_folder(folder: Path) -> Dataset:
         intensities=inten,
         mask=mask,
         files=_existing([*paths, *used], folder, "mask.png"),
+        image_labels=labels(paths),
     )
 
 
@@ -200,6 +201,7 @@ def select_images(ds: Dataset, indices: list[int]) -> Dataset:
         mask=ds.mask,
         _reader=lambda i: reader(idx[i]),
         files=(),  # no file fingerprint: the same files with another choice are other inputs
+        image_labels=tuple(ds.label(j) for j in idx),  # as numbered in the folder
     )
 
 

@@ -69,7 +69,7 @@ def test_changed_image_content_is_refused_and_unchanged_inputs_resume(tmp_path: 
     images[5, 10, 10] ^= 1  # one value of one image: same shape, lights and mask
     np.save(folder / "images.npy", images)
     r = _maxfs("run", str(folder), "-o", str(out), "--eps", "1")
-    assert r.returncode == 2 and "image 5 first" in r.stderr and "--overwrite" in r.stderr
+    assert r.returncode == 2 and "image 6 first" in r.stderr and "--overwrite" in r.stderr
     (tmp_path / "other").mkdir()
     (tmp_path / "other" / "notes.txt").write_text("mine")
     r = _maxfs("run", str(folder), "-o", str(tmp_path / "other"), "--eps", "1")

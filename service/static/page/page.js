@@ -236,13 +236,17 @@ function renderDetail() {
   $("#d-warnings").replaceChildren(
     ...(job.warnings || []).map((w) => Object.assign(document.createElement("li"), { textContent: w }))
   );
-  $("#d-start").disabled = !["created", "uploading", "cancelled", "failed"].includes(job.state);
-  $("#d-start").textContent = job.state === "cancelled" || job.state === "failed" ? "Resume" : "Start";
+  // a failed job would fail the same way: nothing can be changed from this page (results.resumable)
+  const resumable = !job.results || job.results.resumable !== false;
+  $("#d-start").hidden = !resumable;
+  $("#d-start").disabled = !resumable || !["created", "uploading", "cancelled", "failed"].includes(job.state);
+  $("#d-start").textContent = job.state === "cancelled" ? "Resume" : "Start";
   $("#d-cancel").disabled = FINAL.includes(job.state);
   $("#d-delete").hidden = !page.canDelete;
   $("#d-delete").disabled = !FINAL.includes(job.state);
   const available = job.results && job.results.available;
-  $("#d-no-results").hidden = available;
+  $("#d-no-results").textContent = (job.results && job.results.note) || "";
+  $("#d-no-results").hidden = !(job.results && job.results.note);
   $("#d-previews").hidden = !available;
   $("#d-partial").textContent = available && job.results.partial ? "partial: the job is not done" : "";
   renderDownloads(job, available);
