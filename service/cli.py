@@ -442,7 +442,10 @@ def cmd_fetch(args: argparse.Namespace) -> int:
                     f"job {args.job_id} ended {st['state']}: {st.get('error') or ''}; its results are "
                     "partial (fetch them with --partial)"
                 )
-        print(c.fetch_zarr(args.job_id, Path(args.output), partial=args.partial, inputs=args.inputs))
+        out = c.fetch_zarr(
+            args.job_id, Path(args.output), partial=args.partial, inputs=args.inputs, overwrite=args.overwrite
+        )
+        print(out)
     return 0
 
 
@@ -596,7 +599,15 @@ def parser() -> argparse.ArgumentParser:
     p.set_defaults(fn=cmd_submit)
     p = sub.add_parser("fetch", help="download a job's results as a Zarr folder")
     p.add_argument("job_id")
-    p.add_argument("-o", "--output", required=True)
+    p.add_argument(
+        "-o",
+        "--output",
+        required=True,
+        help="output folder to create: it will hold results.zarr/ and previews/",
+    )
+    p.add_argument(
+        "--overwrite", action="store_true", help="replace an existing OUTPUT that holds maxfs results"
+    )
     p.add_argument("--wait", action="store_true", help="wait until the job has finished, then fetch")
     p.add_argument("--inputs", action="store_true", help="also download the input image stack")
     p.add_argument(

@@ -148,16 +148,27 @@ class MaxfsClient:
         r = self._call("GET", f"/jobs/{job_id}/results/{name}.npy")
         return np.load(io.BytesIO(r.content), allow_pickle=False)
 
-    def fetch_zarr(self, job_id: str, out: Path, *, partial: bool = False, inputs: bool = False) -> Path:
+    def fetch_zarr(
+        self, job_id: str, out: Path, *, partial: bool = False, inputs: bool = False, overwrite: bool = False
+    ) -> Path:
         """Download the job's results (a zip) and unpack them as the job folder ``out``
         (``out/results.zarr``, previews, record; the input stack only if ``inputs``).
 
         A job that is not done has partial results (unfinished tiles hold fill values):
         they are refused unless ``partial`` (use :meth:`wait` first to get complete ones).
+        An existing ``out`` is replaced only with ``overwrite``, and only if it holds maxfs results
+        (or nothing): the old folder goes once the new one is complete.
         """
+        from storage.layout import is_job_folder
+
         out = Path(out)
         if out.exists():
-            raise ConflictError(f"{out} already exists; choose a new output path")
+            if not overwrite:
+                raise ConflictError(
+                    f"{out} already exists; choose a new output folder, or add --overwrite to replace it"
+                )
+            if not out.is_dir() or (any(out.iterdir()) and not is_job_folder(out)):
+                raise ConflictError(f"{out} holds something other than maxfs results; it is not replaced")
         if not partial:
             st = self.status(job_id)
             if st["state"] != JobState.DONE:
@@ -187,7 +198,13 @@ class MaxfsClient:
                         if name.startswith("/") or ".." in Path(name).parts:
                             raise MaxfsError(f"refusing unsafe path {name!r} in the archive")
                     zf.extractall(staging)
-                staging.rename(out)
+                if out.exists():  # --overwrite: the old results go only now that the new ones are here
+                    old = staging.with_name(staging.name + "-old")
+                    out.rename(old)
+                    staging.rename(out)
+                    shutil.rmtree(old, ignore_errors=True)
+                else:
+                    staging.rename(out)
             except BaseException:
                 shutil.rmtree(staging, ignore_errors=True)
                 raise

@@ -104,4 +104,3 @@ def run_in_process(
         rec.state, rec.error, rec.finished_at = JobState.FAILED, str(e), time.time()
         save()
         return rec
-

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from service.previews import PREVIEW_INPUTS, PREVIEWS, render
+from service.previews import PREVIEW_INPUTS, PREVIEWS, render, with_legend
 from service.progress import ProgressFn
 from service.settings import Settings, cluster_settings, runs_in_process
 from service.timings import Timings
@@ -271,7 +271,7 @@ def write_previews(store: JobStore) -> list[Path]:
     paths = []
     for name in PREVIEWS:
         p = d / f"{name}.png"
-        p.write_bytes(encode_png(render(name, arrays, store.spec.k)))
+        p.write_bytes(encode_png(with_legend(name, render(name, arrays, store.spec.k), store.spec.k)))
         paths.append(p)
     return paths
 

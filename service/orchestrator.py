@@ -87,9 +87,7 @@ async def run_job(
                     client.submit(estimate_store_eps, str(job_dir), key=key, pure=False, retries=retries)
                 )
             except Exception as e:
-                raise RuntimeError(
-                    f"estimating eps and the response failed: {type(e).__name__}: {e}"
-                ) from e
+                raise RuntimeError(f"estimating eps and the response failed: {type(e).__name__}: {e}") from e
             params = resolve_eps(store, eps)
         rec.eps = params.eps
         # many small reads (one per tile): in a thread, so the server keeps answering meanwhile

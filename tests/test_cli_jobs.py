@@ -100,6 +100,16 @@ def test_submit_options_cancel_start_wait_fetch_and_delete(
     assert (p.solver, p.model, p.tile, p.eps, p.shadow) == ("milp", "paper", 16, 1.0, 2.0)
     assert (p.max_nodes, p.milp_time_limit, p.fallback) == (5000, 5.0, False)
     assert got.done_grid().all() and np.isfinite(got.read_output("normal")[s.mask]).mean() > 0.9
+    # fetching into an existing folder: refused, unless --overwrite (and only over maxfs results)
+    r = _maxfs("fetch", job_id, *url, "-o", str(tmp_path / "out.zarr"))
+    assert r.returncode == 2 and "already exists" in r.stderr and "--overwrite" in r.stderr, r.stderr
+    r = _maxfs("fetch", job_id, *url, "-o", str(tmp_path / "out.zarr"), "--overwrite")
+    assert r.returncode == 0 and JobStore.open(tmp_path / "out.zarr", mode="r").done_grid().all(), r.stderr
+    (tmp_path / "mine").mkdir()
+    (tmp_path / "mine" / "notes.txt").write_text("keep")
+    r = _maxfs("fetch", job_id, *url, "-o", str(tmp_path / "mine"), "--overwrite")
+    assert r.returncode == 2 and "other than maxfs results" in r.stderr
+    assert (tmp_path / "mine" / "notes.txt").read_text() == "keep"
 
     r = _maxfs("delete", job_id, *url)
     assert r.returncode == 0 and "deleted" in r.stderr, r.stderr

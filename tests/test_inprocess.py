@@ -19,7 +19,16 @@ from tests.procs import poll_until
 from worker import synthetic
 
 MAXFS = str(Path(sys.executable).parent / "maxfs")
-ARRAYS = ("normal", "albedo", "inliers", "inlier_count", "optimal", "tile_stats", "done", "input_digests")
+ARRAYS = (
+    "normal",
+    "albedo",
+    "inliers",
+    "inlier_count",
+    "optimal",
+    "tiles/tile_stats",
+    "tiles/done",
+    "inputs/input_digests",
+)
 
 
 def _phases(stderr: str) -> list[str]:

@@ -239,5 +239,3 @@ def drop_brightest(
 def box_halfwidth(b: NDArray[np.float64], valid: NDArray[np.bool_], box_factor: float) -> float:
     """Half-width ``U`` of the box on ``n`` for one pixel."""
     return float(box_factor * (b[valid].max() if valid.any() else 1.0))
-
-

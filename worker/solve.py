@@ -460,4 +460,3 @@ def solve(
         full["source"],
         resp_v,
     )
-
