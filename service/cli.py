@@ -417,10 +417,18 @@ def cmd_token(args: argparse.Namespace) -> int:
 
 
 def cmd_submit(args: argparse.Namespace) -> int:
-    from service.cliverbs import wait_and_report
+    from service.cliverbs import UploadProgress, wait_and_report
 
+    ds = _dataset(args)
     with _client(args) as c:
-        job_id = c.submit_folder(_dataset(args), **_params(args))
+        with UploadProgress(ds.k) as shown:
+            job_id = c.submit_folder(
+                ds,
+                name=args.name,
+                existing="reuse" if args.reuse else "refuse",
+                on_upload=shown.update,
+                **_params(args),
+            )
         print(job_id, flush=True)
         if args.wait:
             return wait_and_report(c, job_id, as_json=False)
@@ -596,6 +604,13 @@ def parser() -> argparse.ArgumentParser:
     _solver_args(p)
     _images_arg(p)
     p.add_argument("--wait", action="store_true", help="wait for the job to finish, showing progress")
+    p.add_argument("--name", default=None, help="what to call the job (default: the folder's name)")
+    p.add_argument(
+        "--reuse",
+        action="store_true",
+        help="if a finished job has these inputs and parameters, print its id instead of computing "
+        "again (without it such a submit is refused, naming the job)",
+    )
     p.set_defaults(fn=cmd_submit)
     p = sub.add_parser("fetch", help="download a job's results as a Zarr folder")
     p.add_argument("job_id")

@@ -210,17 +210,33 @@ class MaxfsClient:
                 raise
         return out
 
-    def submit_folder(self, folder: Path | Dataset, **params: Any) -> str:
+    def submit_folder(
+        self,
+        folder: Path | Dataset,
+        *,
+        name: str | None = None,
+        existing: str = "new",
+        on_upload: Callable[[int, int], None] | None = None,
+        **params: Any,
+    ) -> str:
         """Create a job from a dataset folder (or an opened :class:`Dataset`, e.g. a selection of its
-        images), stream its images one by one, start it.
+        images), stream its images one by one, start it. ``name`` (default: the folder's name) is
+        how the job is shown; ``on_upload(sent, k)`` is called after each image.
 
         Only one decoded image is in memory at a time (NPY stacks are read one image at a time).
 
         **Resumable**: the job is labelled with a digest of the folder's files (paths, sizes,
         times), the selection and the parameters. If this user already has an unfinished job with
         that label (a submit cut short), it is continued: only its missing images are sent, then
-        it is started; one that is already queued or running is just returned.
+        it is started; one that is already queued or running is just returned. Two submits of one
+        folder at once both return the job that runs, whichever of them started it.
+
+        A *finished* job with that label (the same inputs and parameters, done) is, by ``existing``:
+        ``"new"`` ignored (a new job), ``"reuse"`` returned, ``"refuse"`` a :class:`ConflictError`
+        naming it (``maxfs submit`` without ``--reuse``: no silent re-upload and recompute).
         """
+        if existing not in ("new", "reuse", "refuse"):
+            raise ValueError(f"existing must be new, reuse or refuse, got {existing!r}")
         ds = folder if isinstance(folder, Dataset) else load_folder(folder)
         meta: dict[str, Any] = {
             "k": ds.k,
@@ -233,22 +249,40 @@ class MaxfsClient:
             **{k: v for k, v in params.items() if v is not None},
         }
         label = submission_label(ds, meta)
-        found = None
-        if label is not None:
-            found = next(
-                (j for j in self.jobs() if j.get("label") == label and j["state"] not in FINAL_STATES), None
+        jobs = self.jobs() if label is not None else []
+        found = next((j for j in jobs if j.get("label") == label and j["state"] not in FINAL_STATES), None)
+        done = next(
+            (j for j in reversed(jobs) if j.get("label") == label and j["state"] == JobState.DONE), None
+        )
+        if found is None and done is not None and existing != "new":
+            if existing == "reuse":
+                return done["id"]
+            raise ConflictError(
+                f"job {done['id']} ({done.get('name') or 'unnamed'}) already has results for these inputs "
+                f"and parameters; use it (--reuse, or `maxfs fetch {done['id']} -o FOLDER`), or delete it "
+                "to compute again"
             )
         if found is not None and found["state"] in (JobState.QUEUED, JobState.RUNNING):
             return found["id"]
         if found is None:
-            job_id = self.create_job(**meta, label=label)["id"]
+            job_id = self.create_job(**meta, label=label, name=name or ds.name)["id"]
             missing: list[int] = list(range(ds.k))
         else:
             job_id = found["id"]
             missing = list(self.status(job_id).get("missing_images", range(ds.k)))
-        for i in missing:
-            self.upload_image(job_id, i, ds.read(i))
-        if ds.mask is not None:
-            self.upload_mask(job_id, ds.mask)
-        self.start(job_id)
+        try:
+            sent = ds.k - len(missing)
+            for i in missing:
+                self.upload_image(job_id, i, ds.read(i))
+                sent += 1
+                if on_upload:
+                    on_upload(sent, ds.k)
+            if ds.mask is not None:
+                self.upload_mask(job_id, ds.mask)
+            self.start(job_id)
+        except ConflictError:
+            # another submit of the same folder finished the uploads and started it first
+            if self.status(job_id)["state"] not in (JobState.CREATED, JobState.UPLOADING):
+                return job_id  # whatever it ends as, it is this submit's job too (wait reports it)
+            raise
         return job_id

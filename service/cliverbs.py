@@ -27,7 +27,10 @@ def format_status(st: dict[str, Any]) -> str:
     done, total = p.get("tiles_done", 0), p.get("tiles_total", 0)
     frac = done / total if total else 0.0
     rate = p.get("pixels_per_second")
-    parts = [st["id"], f"{st['state']:<9}", f"tiles {done}/{total} ({frac:.0%})"]
+    if p.get("fraction") is not None:
+        frac = p["fraction"]  # weighted by masked pixels (the server's)
+    parts = [st["id"], *([st["name"]] if st.get("name") else []), f"{st['state']:<9}"]
+    parts.append(f"tiles {done}/{total} ({frac:.0%})")
     if rate:
         parts.append(f"{rate / 1e3:.1f}k px/s")
     if st["state"] in (JobState.QUEUED, JobState.RUNNING):
@@ -141,6 +144,33 @@ class Progress:
             p.get("eta_seconds"),
             (p.get("pixels_done", 0), p.get("pixels_total", 0)),
         )
+
+
+class UploadProgress:
+    """Images sent by ``maxfs submit``: a tqdm bar on a terminal, nothing elsewhere (logs get the
+    job id and, with ``--wait``, the job's progress lines)."""
+
+    def __init__(self, k: int, stream: Any = None) -> None:
+        self.k = k
+        self.stream = stream or sys.stderr
+        self.bar = None
+
+    def __enter__(self) -> UploadProgress:
+        return self
+
+    def update(self, sent: int, k: int) -> None:
+        if not bool(getattr(self.stream, "isatty", lambda: False)()):
+            return
+        if self.bar is None:
+            from tqdm import tqdm
+
+            self.bar = tqdm(total=k, unit="image", desc="uploading", file=self.stream, dynamic_ncols=True)
+        self.bar.n = sent
+        self.bar.refresh()
+
+    def __exit__(self, *exc: object) -> None:
+        if self.bar is not None:
+            self.bar.close()
 
 
 def _client(args: argparse.Namespace):

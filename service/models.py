@@ -52,7 +52,10 @@ class Progress(BaseModel):
 
     model_config = OPEN
 
-    fraction: float = Field(description="tiles done / tiles total (0 before the first start)")
+    fraction: float = Field(
+        description="masked pixels in finished tiles / masked pixels (each tile weighs its work; "
+        "tiles done / tiles total while the mask is not counted); 0 before the first start"
+    )
     tiles_done: int
     tiles_total: int
     pixels_done: int = Field(description="masked pixels in finished tiles")
@@ -97,6 +100,7 @@ class JobStatus(BaseModel):
     id: str = Field(description="32 hexadecimal digits")
     state: JobState
     owner: str = Field(description="the user whose token created the job")
+    name: str | None = Field(None, description="what people call the job (default: the folder's name)")
     created_at: float = Field(description="Unix time")
     updated_at: float
     started_at: float | None = Field(
@@ -168,6 +172,11 @@ class JobShape(BaseModel):
     intensities: list[float] | list[list[float]] | None = Field(
         None, description="light intensities: k values, or k x channels"
     )
+    name: str | None = Field(
+        None,
+        max_length=200,
+        description="what people call the job (`maxfs submit` sends the folder's name, or --name)",
+    )
     label: str | None = Field(
         None,
         max_length=200,
@@ -238,6 +247,8 @@ def status_body(
     body = rec.to_json()
     body.pop("uploaded_images", None)  # the indices; "uploaded" (count) and "missing_images" say it
     frac = rec.tiles_done / rec.tiles_total if rec.tiles_total else 0.0
+    if rec.pixels_total:  # a tile of the object's edge is less work than a full one
+        frac = rec.pixels_done / rec.pixels_total if rec.state is not JobState.DONE else 1.0
     body["progress"] = {
         "fraction": frac,
         "tiles_done": rec.tiles_done,

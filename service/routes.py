@@ -27,7 +27,17 @@ from storage.errors import ConflictError, NotFoundError, PayloadTooLargeError
 from storage.layout import JobSpec, JobStore
 from storage.params import JobParams
 from storage.records import JobState
-from storage.tokens import TokenStore
+from storage.tokens import TokenStore, User
+
+#: The header of ``GET /jobs`` that says whose jobs these are.
+USER_HEADER = "X-Maxfs-User"
+
+
+def signed_in_as(user: User, auth: bool) -> str:
+    """'alice', 'root (admin)', or what a server without auth says: everyone is the local user."""
+    if not auth:
+        return "no sign-in (auth is off)"
+    return user.name + (" (admin)" if user.admin else "")
 
 
 class JobRoutes:
@@ -161,14 +171,17 @@ class JobRoutes:
         ).validate()
         opts = solve_options(req)
         params = JobParams.build(**opts | {"tile": self.m.resolve_tile(spec, req.tile, req.solver)})
-        rec = self.m.create(spec, params, user_of(request), label=req.label)
+        rec = self.m.create(spec, params, user_of(request), label=req.label, name=req.name)
         body = self._body(request, rec.id)
         return JSONResponse(body, status_code=201, headers={"Location": body["links"]["self"]})
 
-    async def list_jobs(self, request: Request) -> list[dict[str, Any]]:
-        """All jobs, oldest first."""
+    async def list_jobs(self, request: Request) -> JSONResponse:
+        """All jobs, oldest first. ``X-Maxfs-User`` names who the token belongs to (the job page
+        says who is signed in)."""
         base = str(request.base_url).rstrip("/")
-        return [status_body(r, base) for r in self.m.list_jobs(user_of(request))]
+        user = user_of(request)
+        body = [status_body(r, base) for r in self.m.list_jobs(user)]
+        return JSONResponse(body, headers={USER_HEADER: signed_in_as(user, self.s.auth)})
 
     async def status(self, job_id: str, request: Request) -> dict[str, Any]:
         """State, progress (tiles, pixels/s, ETA, certified share) and error reason of a job."""

@@ -112,6 +112,7 @@ class JobRecord:
     eps: float | None = None
     owner_uid: str = ""  # the owner's token identity (storage.tokens): a re-created name is someone else
     label: str | None = None  # the client's name for the submission (maxfs submit resumes by it)
+    name: str | None = None  # what people call the job: the dataset folder's name unless given
     uploaded_images: list[int] = field(default_factory=list)  # indices of the images stored, before start
 
     @property

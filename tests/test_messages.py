@@ -351,3 +351,52 @@ def test_ctrl_c_in_the_first_seconds_prints_a_line_not_a_traceback(tmp_path: Pat
             continue  # finished before the signal (a fast machine): nothing to check
         assert p.returncode == 130 and "Traceback" not in err, err
         assert "maxfs: interrupted" in err
+
+
+# --- what the server's answers say -----------------------------------------------------------------
+def test_jobs_show_their_name_and_progress_weighed_by_pixels() -> None:
+    from service.cliverbs import format_status
+    from service.models import status_body
+    from storage.records import JobRecord, JobState
+
+    rec = JobRecord(
+        id="a" * 32,
+        name="bear",
+        state=JobState.RUNNING,
+        tiles_total=4,
+        tiles_done=1,
+        pixels_total=1000,
+        pixels_done=700,
+    )
+    body = status_body(rec, "http://x")
+    assert body["name"] == "bear" and body["progress"]["fraction"] == 0.7
+    assert format_status(body).startswith(f"{'a' * 32}  bear  running    tiles 1/4 (70%)")
+
+
+def test_the_page_says_who_is_signed_in() -> None:
+    from service.routes import signed_in_as
+    from storage.tokens import User
+
+    assert signed_in_as(User("alice"), auth=True) == "alice"
+    assert signed_in_as(User("root", admin=True), auth=True) == "root (admin)"
+    assert signed_in_as(User("local", admin=True), auth=False) == "no sign-in (auth is off)"
+    js = (Path(__file__).parents[1] / "service" / "static" / "page" / "page.js").read_text()
+    assert 'r.headers.get("X-Maxfs-User")' in js and '"Signed in as "' in js
+
+
+def test_submit_shows_upload_progress_on_a_terminal() -> None:
+    import io
+
+    from service.cliverbs import UploadProgress
+
+    class Terminal(io.StringIO):
+        def isatty(self) -> bool:
+            return True
+
+    tty, log = Terminal(), io.StringIO()
+    for stream in (tty, log):
+        with UploadProgress(5, stream=stream) as shown:
+            for i in range(1, 6):
+                shown.update(i, 5)
+    assert "uploading" in tty.getvalue() and "5/5" in tty.getvalue()
+    assert log.getvalue() == ""  # off a terminal: no bar (the job id and --wait's lines follow)

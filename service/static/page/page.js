@@ -123,6 +123,8 @@ async function refresh() {
   try {
     const r = await api("/jobs");
     page.jobs = (await r.json()).reverse(); // newest first
+    const who = r.headers.get("X-Maxfs-User");
+    if (who) $("#who-text").textContent = page.auth ? "Signed in as " + who : who;
     $("#list-error").textContent = "";
     $("#updated").textContent = "updated " + new Date().toLocaleTimeString();
     renderTable();
@@ -157,7 +159,7 @@ function renderTable() {
     }
     const p = job.progress;
     const idCell = cell(row, 0);
-    idCell.textContent = job.id.slice(0, 8);
+    idCell.textContent = job.name ? `${job.name} (${job.id.slice(0, 8)})` : job.id.slice(0, 8);
     idCell.title = job.id;
     cell(row, 1).textContent = job.owner;
     const st = cell(row, 2);
@@ -202,7 +204,7 @@ function renderDetail() {
   $("#detail").hidden = !job;
   if (!job) return;
   const p = job.progress;
-  $("#d-id").textContent = job.id;
+  $("#d-id").textContent = job.name ? `${job.name} · ${job.id}` : job.id;
   const st = $("#d-state");
   st.textContent = job.state;
   st.className = "state state-" + job.state;
