@@ -1,6 +1,6 @@
 """CLI verbs for jobs on a server (``jobs``, ``wait``, ``start``, human ``status``) and the progress display.
 
-Progress: a tqdm bar on a terminal; elsewhere (logs, CI, pipes) plain lines, one per 10 % of the tiles
+Progress: a tqdm bar on a terminal; elsewhere (logs, CI, pipes) plain lines, one per 10 % of the masked pixels
 or per 30 s, never carriage returns.
 """
 
