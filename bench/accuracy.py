@@ -39,9 +39,9 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from storage.outputs import Source
-from worker import synthetic
-from worker.solve import Solution, solve
+from maxfs.storage.outputs import Source
+from maxfs.worker import synthetic
+from maxfs.worker.solve import Solution, solve
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
@@ -70,7 +70,7 @@ def _diligent(name: str) -> Obj:
     def load():
         import scipy.io
 
-        from storage.datasets import load_folder
+        from maxfs.storage.inputs import load_folder
 
         folder = DATA / "diligent-crop8" / f"{name}PNG"
         ds = load_folder(folder)
@@ -83,7 +83,7 @@ def _diligent(name: str) -> Obj:
 
 def _uw(name: str) -> Obj:
     def load():
-        from storage.datasets import load_folder
+        from maxfs.storage.inputs import load_folder
 
         ds = load_folder(DATA / "uw-psm" / name)
         images = np.stack([ds.read(i) for i in range(ds.k)])

@@ -16,7 +16,7 @@ slow readers of a large result. Their answers are counted by status code.
 prints a table row: jobs finished, status requests, p50/p95/max status latency, the
 server's peak memory (VmHWM, and its growth during the run), hostile requests by
 answer, and cross-user denials. ``tests/test_load.py`` runs the same scenario small
-and checks its outcome (never its timings); the scenario is :mod:`service.loadgen`.
+and checks its outcome (never its timings); the scenario is :mod:`tests.loadgen`.
 """
 
 from __future__ import annotations
@@ -25,9 +25,9 @@ import argparse
 import tempfile
 from pathlib import Path
 
-from service.client import FINAL_STATES
-from service.harness import Server
-from service.loadgen import run_load
+from maxfs.service.cli.client import FINAL_STATES
+from tests.harness import Server
+from tests.loadgen import run_load
 
 
 def main() -> None:

@@ -29,7 +29,7 @@ from pathlib import Path
 import imagecodecs
 import numpy as np
 
-from worker import synthetic
+from maxfs.worker import synthetic
 
 MAXFS = str(Path(sys.executable).parent / "maxfs")
 H, W = 512, 612

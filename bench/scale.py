@@ -25,10 +25,10 @@ from pathlib import Path
 
 import numpy as np
 
-from service.harness import BIN, DaskCluster
-from storage.layout import JobStore
-from storage.tiles import DEFAULT_TASK_MEMORY, tile_memory
-from worker import synthetic
+from maxfs.storage.layout import JobStore
+from maxfs.storage.tiles import DEFAULT_TASK_MEMORY, tile_memory
+from maxfs.worker import synthetic
+from tests.harness import BIN, DaskCluster
 
 
 def write_stack(folder: Path, k: int, size: int, seed: int = 0) -> Path:

@@ -19,13 +19,14 @@ from pathlib import Path
 
 import numpy as np
 
-from service.client import MaxfsClient
-from service.harness import Server
-from service.local import ingest, run_store
-from storage.datasets import load_folder, write_npy_folder
-from storage.params import JobParams
-from worker import synthetic
-from worker.solve import solve
+from maxfs.service.cli.client import MaxfsClient
+from maxfs.service.runs.local import ingest, run_store
+from maxfs.storage.datasets import write_npy_folder
+from maxfs.storage.inputs import load_folder
+from maxfs.storage.params import JobParams
+from maxfs.worker import synthetic
+from maxfs.worker.solve import solve
+from tests.harness import Server
 
 
 def main() -> None:

@@ -1,8 +1,8 @@
 """Throughput of SLURM worker jobs (dask-jobqueue) against the embedded cluster, in one run.
 
 Rows: the embedded LocalCluster with 1 and 2 worker processes, and ``--cluster slurm``
-with 1 and 2 worker jobs of one core each (both through :func:`service.cluster.open_cluster`
-and :func:`service.orchestrator.run_job`, as ``maxfs run --cluster ...`` runs them).
+with 1 and 2 worker jobs of one core each (both through :func:`service.runs.cluster.open_cluster`
+and :func:`service.runs.orchestrator.run_job`, as ``maxfs run --cluster ...`` runs them).
 Rates count masked pixels over the compute phase of each job (first tile submitted to last
 tile done), median over ``--repeat`` rounds (each configuration in turn, a fresh cluster and
 store each time); "ready" is the time from asking for the cluster to having all its workers
@@ -29,12 +29,12 @@ import tempfile
 import time
 from pathlib import Path
 
-from service.cluster import open_cluster
-from service.local import ingest
-from service.orchestrator import run_job
-from service.settings import Settings
-from storage.datasets import load_folder
-from storage.params import JobParams
+from maxfs.service.runs.cluster import open_cluster
+from maxfs.service.runs.local import ingest
+from maxfs.service.runs.orchestrator import run_job
+from maxfs.service.settings import Settings
+from maxfs.storage.inputs import load_folder
+from maxfs.storage.params import JobParams
 
 REPO = Path(__file__).resolve().parents[1]
 UW = REPO.parent / "shared" / "data" / "uw-psm"

@@ -15,11 +15,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from storage.errors import InvalidInputError
-from storage.tiles import DEFAULT_TASK_MEMORY
+from maxfs.storage.errors import InvalidInputError
+from maxfs.storage.tiles import DEFAULT_TASK_MEMORY
 
 LOOPBACK = ("127.0.0.1", "::1", "localhost")
-#: Where tiles run (:mod:`service.cluster`).
+#: Where tiles run (:mod:`service.runs.cluster`).
 KINDS = ("local", "slurm", "address")
 ENV_PREFIX = "MAXFS_"
 _TRUE = frozenset({"1", "true", "t", "yes", "y", "on"})
@@ -64,7 +64,7 @@ class Settings:
 
     #: Where job stores live (one folder per job under ``jobs/``) and the token file.
     data_dir: Path = Path("maxfs-data")
-    #: Where tiles run (:mod:`service.cluster`): "local" (embedded LocalCluster), "slurm" (worker
+    #: Where tiles run (:mod:`service.runs.cluster`): "local" (embedded LocalCluster), "slurm" (worker
     #: jobs through dask-jobqueue) or "address" (``scheduler``); empty = "address" when
     #: ``scheduler`` is set, else "local".
     cluster: str = ""
@@ -153,16 +153,6 @@ class Settings:
     #: Server URL and API token used by ``maxfs submit/status/fetch/cancel``.
     server: str = "http://127.0.0.1:8000"
     token: str = ""
-    #: Tests only: a fault to inject ("pause-mask-write": a mask write stops after its first
-    #: band for a minute, so a test can kill the server mid-write; "free-bytes:N": the disk
-    #: has N bytes free, whatever it really has). Empty in real use.
-    fault: str = ""
-    #: Tests only: tile indices, ","-separated (e.g. "3,5"), whose tile task raises a clear error
-    #: before it reads its input; "@FILE": the indices in FILE, while it exists (so a test can clear
-    #: the fault without a restart). The tile task reads ``MAXFS_TEST_FAIL_TILES`` itself, in the
-    #: worker's environment (:mod:`worker.task`; an embedded cluster's workers inherit the
-    #: server's). Empty in real use.
-    test_fail_tiles: str = ""
 
     def __init__(self, **given: Any) -> None:
         fields = {f.name: f for f in dataclasses.fields(self)}
@@ -203,7 +193,7 @@ def cluster_kind(settings: Settings) -> str:
 
 
 def cluster_settings(scheduler: str = "", workers: int = 2, cluster: str = "") -> Settings:
-    """The ``MAXFS_*`` settings with the cluster the command line chose (see :mod:`service.cluster`)."""
+    """The ``MAXFS_*`` settings with the cluster the command line chose (see :mod:`service.runs.cluster`)."""
     return Settings().replace(scheduler=scheduler, workers=workers, cluster=cluster)
 
 

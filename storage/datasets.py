@@ -26,9 +26,9 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from storage.errors import DatasetError, InvalidInputError
-from storage.imageio import read_image as _decode_file
-from storage.options import DTYPES, check_lights
+from maxfs.storage.errors import DatasetError, InvalidInputError
+from maxfs.storage.imageio import read_image as _decode_file
+from maxfs.storage.options import DTYPES, check_lights
 
 
 @dataclass(frozen=True)
@@ -173,7 +173,7 @@ def _probe(name: str, layout: str, k: int, reader: Callable[[int], NDArray], **k
     return Dataset(name, layout, k, h, w, ch, str(first.dtype), _reader=reader, mask=mask, **kw)
 
 
-def _diligent(folder: Path) -> Dataset:
+def diligent(folder: Path) -> Dataset:
     names = [ln.strip() for ln in (folder / "filenames.txt").read_text().splitlines() if ln.strip()]
     if len(names) < 3:
         raise DatasetError(f"{folder}/filenames.txt lists {len(names)} images; at least 3 are needed")
@@ -241,7 +241,7 @@ class _NpyImages:
         return img.reshape(self.shape[1:])
 
 
-def _npy(folder: Path) -> Dataset:
+def npy_stack(folder: Path) -> Dataset:
     stack = _NpyImages(folder / "images.npy")
     if stack.ndim not in (3, 4) or (stack.ndim == 4 and stack.shape[3] != 3):
         raise DatasetError(f"{folder}/images.npy must be (k, H, W) or (k, H, W, 3), got {stack.shape}")
@@ -284,7 +284,7 @@ def _npy(folder: Path) -> Dataset:
     )
 
 
-def _uw(folder: Path) -> Dataset:
+def uw_psm(folder: Path) -> Dataset:
     root = folder.parent
     listing = root / f"{folder.name}.txt"
     lines = [ln.strip() for ln in listing.read_text().splitlines() if ln.strip()]
@@ -318,29 +318,6 @@ def _uw(folder: Path) -> Dataset:
         mask=mask,
         files=(*paths, *([mask_path] if mask_path.exists() else []), root / "lights.txt", listing),
         image_labels=labels(paths),
-    )
-
-
-def load_folder(folder: Path | str) -> Dataset:
-    """Open a dataset folder of any supported layout (see the module docstring)."""
-    folder = Path(folder)
-    if not folder.is_dir():
-        raise DatasetError(f"{folder} is not a folder; give the folder that holds the images")
-    if (folder / "filenames.txt").exists():
-        return _diligent(folder)
-    if (folder / "images.npy").exists():
-        return _npy(folder)
-    if (folder.parent / "lights.txt").exists() and (folder.parent / f"{folder.name}.txt").exists():
-        return _uw(folder)
-    from storage.folders import detect  # TIFF stacks and plain folders (storage/folders.py)
-
-    ds = detect(folder)
-    if ds is not None:
-        return ds
-    raise DatasetError(
-        f"{folder} is not a recognised dataset: expected filenames.txt + light_directions.txt (DiLiGenT), "
-        f"images.npy + lights.txt (NPY stack), a UW psm object folder with ../lights.txt and "
-        f"../{folder.name}.txt, or images (or a multi-page TIFF) with light_directions.txt or lights.txt"
     )
 
 

@@ -33,10 +33,6 @@ class StoreError(MaxfsError, OSError):
     """The job store is missing, corrupt, or was written with other parameters."""
 
 
-class SolverError(MaxfsError, RuntimeError):
-    """A solver failed in a way that is not the input's fault."""
-
-
 class JobCancelledError(MaxfsError):
     """A job was cancelled while it was running."""
 

@@ -22,9 +22,24 @@ import numpy as np
 import tifffile
 from numpy.typing import NDArray
 
-from storage.datasets import Dataset, _existing, _lights, _mask_from, _probe, _read_matrix, labels, read_image
-from storage.errors import DatasetError, InvalidInputError
-from storage.options import DTYPES, WARN_LIGHT_CONDITION, check_lights, light_condition, light_singular_values
+from maxfs.storage.datasets import (
+    Dataset,
+    _existing,
+    _lights,
+    _mask_from,
+    _probe,
+    _read_matrix,
+    labels,
+    read_image,
+)
+from maxfs.storage.errors import DatasetError, InvalidInputError
+from maxfs.storage.options import (
+    DTYPES,
+    WARN_LIGHT_CONDITION,
+    check_lights,
+    light_condition,
+    light_singular_values,
+)
 
 IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".tga", ".bmp", ".jpg", ".jpeg")
 LIGHT_FILES = ("light_directions.txt", "lights.txt", "lights.npy")
@@ -143,18 +158,6 @@ def plain_folder(folder: Path) -> Dataset:
         files=_existing([*paths, *used], folder, "mask.png"),
         image_labels=labels(paths),
     )
-
-
-def detect(folder: Path) -> Dataset | None:
-    """A TIFF-stack or plain folder, or None if ``folder`` is neither."""
-    if lights_file(folder) is None:
-        return None
-    path = stack_file(folder)
-    if path is not None:
-        return tiff_stack(folder, path)
-    if plain_images(folder):
-        return plain_folder(folder)
-    return None
 
 
 # -- choosing images -----------------------------------------------------------------------------------

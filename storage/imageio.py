@@ -18,8 +18,8 @@ import tifffile
 from numpy.typing import NDArray
 from PIL import Image, UnidentifiedImageError
 
-from storage.errors import InvalidInputError, PayloadTooLargeError
-from storage.options import DTYPES
+from maxfs.storage.errors import InvalidInputError, PayloadTooLargeError
+from maxfs.storage.options import DTYPES
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 TIFF_MAGICS = (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+")

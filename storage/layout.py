@@ -55,7 +55,7 @@ import hashlib
 import json
 import os
 import time
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -64,13 +64,19 @@ import numpy as np
 import zarr
 from numpy.typing import NDArray
 
-from storage.digests import DIGEST_BYTES, ArrayHasher, array_digest
-from storage.errors import ConflictError, InvalidInputError, NotFoundError, StoreError
-from storage.observations import ObservationModel
-from storage.options import DTYPES, check_lights
-from storage.outputs import OUTPUT_NAMES, OUTPUT_TABLE, OUTPUTS_BY_NAME, TILE_OUTPUTS, output_bytes_per_pixel
-from storage.params import JobParams
-from storage.tiles import Tile, auto_tile, grid_shape, tile_memory, tiles
+from maxfs.storage.digests import DIGEST_BYTES, ArrayHasher, array_digest
+from maxfs.storage.errors import ConflictError, InvalidInputError, NotFoundError, StoreError
+from maxfs.storage.observations import ObservationModel
+from maxfs.storage.options import DTYPES, check_lights
+from maxfs.storage.outputs import (
+    OUTPUT_NAMES,
+    OUTPUT_TABLE,
+    OUTPUTS_BY_NAME,
+    TILE_OUTPUTS,
+    output_bytes_per_pixel,
+)
+from maxfs.storage.params import JobParams
+from maxfs.storage.tiles import Tile, auto_tile, grid_shape, tile_memory, tiles
 
 
 def lights_digest(spec: JobSpec) -> str:
@@ -343,7 +349,7 @@ class JobStore:
         )
         for o in OUTPUT_TABLE:
             if o.made == "after" or not o.exists(C):
-                continue  # depth is made after the run (service.research); albedo_rgb needs colour
+                continue  # depth is made after the run (service.results.research); albedo_rgb needs colour
             shape = o.shape(k, H, W, C)
             chunks = tuple({"y": tc[0], "x": tc[1]}.get(d, n) for d, n in zip(o.dims, shape, strict=True))
             g.create_array(
@@ -494,9 +500,9 @@ class JobStore:
         k + 1 chunks: callers that need several views of them take this list once."""
         return [bytes(row) for row in np.asarray(self._array("input_digests")[...])]
 
-    def write_mask(self, mask: NDArray[np.bool_], after_first_band: Callable[[], None] | None = None) -> None:
+    def write_mask(self, mask: NDArray[np.bool_]) -> None:
         """Store the mask, band by band; a crash part-way leaves :meth:`mask_state`
-        "incomplete", never a silent mix of old and new. ``after_first_band`` is a test hook."""
+        "incomplete", never a silent mix of old and new."""
         s = self.spec
         if mask.shape != (s.height, s.width):
             raise InvalidInputError(
@@ -508,8 +514,6 @@ class JobStore:
         arr, rows = self.group["mask"], int(self.group["mask"].chunks[0])
         for y in range(0, s.height, rows):
             arr[y : y + rows] = m[y : y + rows]
-            if y == 0 and after_first_band is not None:
-                after_first_band()
         dig[s.k] = np.frombuffer(array_digest(m), np.uint8)
 
     @property

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from storage.errors import InvalidInputError
+from maxfs.storage.errors import InvalidInputError
 
 #: Accepted light intensities: relative brightnesses; outside this range dividing the images by
 #: them under- or overflows what the tolerance and the response estimate can represent.

@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from storage.errors import InvalidInputError
+from maxfs.storage.errors import InvalidInputError
 
 #: Default half-width of the box on ``n`` in units of the pixel's largest ``b_i``.
 #: 10 admits albedos up to ten times the brightest observation (``L.N >= 0.1``).
@@ -218,8 +218,8 @@ def check_lights(lights: ArrayLike, k: int | None = None) -> NDArray[np.float64]
 
 @dataclass(frozen=True)
 class Option:
-    """One solve option as users give it: the CLI's flags (``service.cli``) and the HTTP
-    ``POST /jobs`` fields (``service.models.CreateJob``) are generated from these rows, and
+    """One solve option as users give it: the CLI's flags (``service.cli.main``) and the HTTP
+    ``POST /jobs`` fields (``service.http.models.CreateJob``) are generated from these rows, and
     :meth:`storage.params.JobParams.build` takes them by name and validates them
     (:func:`check_options`). Adding an option is a row here, a field of ``JobParams``, a
     check in :func:`check_options` and its use in ``worker``.

@@ -3,7 +3,7 @@
 One row per array says its dtype, fill value, dimension names, description, whether it
 has one plane per image or per colour channel, and whether it gets a preview. The table
 drives store creation and tile writes (:mod:`storage.layout`), the store's size estimate,
-the HTTP name enums (:mod:`service.openapi`) and the tests; adding an output array is
+the HTTP name enums (:mod:`service.http.openapi`) and the tests; adding an output array is
 adding a row here and computing it in :func:`worker.solve.solve_tile`.
 
 Like :mod:`storage.options` it is numpy only, at the bottom of the layers.
@@ -47,7 +47,7 @@ class Output:
         ``"input"``: stored with the inputs (``mask``); ``"after"``: made after the run
         from other outputs (``depth``), absent until then.
     preview
-        A preview PNG is rendered from it (``service.previews``).
+        A preview PNG is rendered from it (``service.results.previews``).
     """
 
     name: str

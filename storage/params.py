@@ -7,8 +7,8 @@ import json
 from dataclasses import asdict, dataclass, replace
 from typing import Any
 
-from storage.errors import InvalidInputError
-from storage.options import (
+from maxfs.storage.errors import InvalidInputError
+from maxfs.storage.options import (
     DEFAULT_BOX_FACTOR,
     DEFAULT_MAX_NODES,
     DEFAULT_MILP_TIME_LIMIT,
@@ -18,7 +18,7 @@ from storage.options import (
     Solver,
     check_options,
 )
-from storage.tiles import DEFAULT_TILE
+from maxfs.storage.tiles import DEFAULT_TILE
 
 #: Fields that record what was asked for, not what was used: left out of :meth:`JobParams.digest`.
 REQUEST_FIELDS = frozenset({"eps_request", "response_request"})

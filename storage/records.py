@@ -15,7 +15,7 @@ from enum import StrEnum
 from pathlib import Path
 from typing import Any
 
-from storage.errors import ConflictError, StoreError
+from maxfs.storage.errors import ConflictError, StoreError
 
 RECORD_NAME = "maxfs-job.json"
 #: Below this share of solved masked pixels a result comes with a loud warning.
@@ -62,7 +62,7 @@ FINAL_STATES = frozenset(s for s in JobState if s.final)
 
 _S = JobState
 #: Every change of a job's state: event -> {state before: state after}. A move that is not
-#: here is refused (409). The server applies them under the job's lock (service.jobs), so
+#: here is refused (409). The server applies them under the job's lock (service.http.jobs), so
 #: two requests on one job (an upload and a cancel, a start and a cancel) happen one after
 #: the other, each on the state the other left.
 TRANSITIONS: dict[str, dict[JobState, JobState]] = {

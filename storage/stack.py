@@ -12,8 +12,8 @@ from concurrent.futures import Future, ThreadPoolExecutor
 import numpy as np
 from numpy.typing import NDArray
 
-from storage.datasets import Dataset
-from storage.digests import array_digest
+from maxfs.storage.datasets import Dataset
+from maxfs.storage.digests import array_digest
 
 
 class StackReader:

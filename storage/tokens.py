@@ -28,7 +28,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from storage.errors import ConflictError, InvalidInputError, NotFoundError, StoreError
+from maxfs.storage.errors import ConflictError, InvalidInputError, NotFoundError, StoreError
 
 TOKEN_PREFIX = "mfs_"
 _NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")

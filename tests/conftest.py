@@ -20,6 +20,11 @@ Data:
   default model ("robust"), computed once per module for each scene and parameters.
 
 Waiting: :func:`tests.procs.poll_until` (the one polling helper).
+
+Tiers (as dask/distributed does): a test that uses a process fixture, or is marked ``slurm`` or
+``browser``, is marked ``slow`` here, unless it is marked ``smoke``: the few real-process tests the
+fast tier keeps so that it still covers every layer for real (one server, one Dask job, one browser
+check). The README's command runs ``-m "not slow"``; ``bash .ci/run`` runs everything.
 """
 
 from __future__ import annotations
@@ -32,12 +37,37 @@ from typing import Any
 import numpy as np
 import pytest
 
+from maxfs.worker import synthetic
+from maxfs.worker.solve import Solution, solve
 from tests import data
 from tests.procs import DaskCluster, InProcessServer, Procs, Server, log_tails
-from worker import synthetic
-from worker.solve import Solution, solve
 
 # -- processes ---------------------------------------------------------------------------------
+
+#: Fixtures that start real processes (servers, schedulers, workers).
+PROCESS_FIXTURES = frozenset(
+    {
+        "procs",
+        "module_procs",
+        "dask_cluster",
+        "module_dask_cluster",
+        "server_factory",
+        "module_server_factory",
+        "inprocess_server",
+    }
+)
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    for item in items:
+        if item.get_closest_marker("smoke"):
+            continue
+        names = set(getattr(item, "fixturenames", ()))
+        if "chrome" in names:
+            item.add_marker(pytest.mark.browser)
+        heavy = PROCESS_FIXTURES & names
+        if heavy or item.get_closest_marker("slurm") or item.get_closest_marker("browser"):
+            item.add_marker(pytest.mark.slow)
 
 
 @pytest.hookimpl(hookwrapper=True)

@@ -2,7 +2,7 @@
 ``maxfs serve`` or an in-process uvicorn and kills every one of them at :meth:`Procs.close`,
 which the fixtures in ``tests/conftest.py`` call at teardown however the test ended.
 
-The process classes and :func:`poll_until` live in :mod:`service.harness` (the benchmarks
+The process classes and :func:`poll_until` live in :mod:`tests.harness` (the benchmarks
 use them too, and ``bench/`` must not import ``tests/``); they are re-exported here.
 """
 
@@ -15,7 +15,7 @@ from typing import Any
 
 import uvicorn
 
-from service.harness import BIN, DaskCluster, Server, free_port, poll_until
+from tests.harness import BIN, DaskCluster, Server, free_port, poll_until
 
 __all__ = ["BIN", "DaskCluster", "InProcessServer", "Procs", "Server", "free_port", "poll_until"]
 
@@ -90,7 +90,7 @@ class Procs:
         graceful: bool = False,
         **kw: Any,
     ) -> Server:
-        """``maxfs serve`` on a free port (keywords as :class:`service.harness.Server`); data in
+        """``maxfs serve`` on a free port (keywords as :class:`tests.harness.Server`); data in
         ``data_dir`` (default ``TMP/data``), its log in ``logs`` (default ``TMP``). At close it is
         SIGKILLed, or with ``graceful`` stopped by SIGTERM (so it closes its cluster; SIGKILL
         after 30 s)."""

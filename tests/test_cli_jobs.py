@@ -11,9 +11,9 @@ from pathlib import Path
 
 import numpy as np
 
-from storage.datasets import write_npy_folder
+from maxfs.storage.datasets import write_npy_folder
+from maxfs.worker import synthetic
 from tests.procs import Server
-from worker import synthetic
 
 MAXFS = str(Path(sys.executable).parent / "maxfs")
 
@@ -58,7 +58,7 @@ def test_version() -> None:
 def test_plain_progress_lines_off_a_terminal() -> None:
     import io
 
-    from service.cliverbs import Progress
+    from maxfs.service.cli.verbs import Progress
 
     out = io.StringIO()
     p = Progress(stream=out)
@@ -93,7 +93,7 @@ def test_submit_options_cancel_start_wait_fetch_and_delete(
     r = _maxfs("fetch", job_id, *url, "-o", str(tmp_path / "out.zarr"), "--wait")
     assert r.returncode == 0, r.stderr
 
-    from storage.layout import JobStore
+    from maxfs.storage.layout import JobStore
 
     got = JobStore.open(tmp_path / "out.zarr", mode="r")
     p = got.params

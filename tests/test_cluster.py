@@ -1,4 +1,4 @@
-"""The one Dask client factory (service.cluster): kinds, SLURM settings, and the embedded
+"""The one Dask client factory (service.runs.cluster): kinds, SLURM settings, and the embedded
 cluster's TLS: no local process gets in through Dask, no HTTP endpoint unless asked."""
 
 from __future__ import annotations
@@ -15,9 +15,15 @@ import pytest
 from distributed.comm import connect
 from distributed.security import Security
 
-from service.cluster import cluster_kind, open_cluster, slurm_job_kwargs, walltime_seconds, worker_lifetime
-from service.settings import Settings
-from storage.errors import InvalidInputError
+from maxfs.service.runs.cluster import (
+    cluster_kind,
+    open_cluster,
+    slurm_job_kwargs,
+    walltime_seconds,
+    worker_lifetime,
+)
+from maxfs.service.settings import Settings
+from maxfs.storage.errors import InvalidInputError
 from tests.procs import Server, free_port
 
 
@@ -137,6 +143,7 @@ def test_embedded_cluster_refuses_other_local_clients_and_serves_no_http(
     assert _speaks_http(server.port)  # the server itself, of course
 
 
+@pytest.mark.slow
 def test_embedded_cluster_serves_a_dashboard_only_when_asked() -> None:
     port = free_port()
 
@@ -159,7 +166,7 @@ def test_store_check_waits_for_a_worker_and_says_where_it_stands(
 
     from distributed import Client
 
-    import service.cluster as cluster
+    import maxfs.service.runs.cluster as cluster
 
     monkeypatch.setattr(cluster, "PROBE_REPORT_SECONDS", 0.5)
     dask = procs.cluster(n_workers=0)
@@ -192,7 +199,7 @@ def test_cancelling_one_result_fetch_leaves_the_others(procs, cancelled: str) ->
 
     from distributed import Client
 
-    from service.cluster import result
+    from maxfs.service.runs.cluster import result
 
     dask = procs.cluster(n_workers=1)
 

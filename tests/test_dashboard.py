@@ -6,9 +6,9 @@ import importlib.util
 
 import pytest
 
-from service.dashboard import EXTRA, check_dashboard, dashboard_host
-from service.settings import Settings
-from storage.errors import InvalidInputError
+from maxfs.service.runs.dashboard import EXTRA, check_dashboard, dashboard_host
+from maxfs.service.settings import Settings
+from maxfs.storage.errors import InvalidInputError
 
 
 @pytest.mark.parametrize(

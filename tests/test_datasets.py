@@ -9,10 +9,11 @@ import numpy as np
 import pytest
 import tifffile
 
-from storage.datasets import load_folder, write_npy_folder
-from storage.errors import DatasetError
+from maxfs.storage.datasets import write_npy_folder
+from maxfs.storage.errors import DatasetError
+from maxfs.storage.inputs import load_folder
+from maxfs.worker import synthetic
 from tests.data import UW_OBJECTS
-from worker import synthetic
 
 
 @pytest.mark.parametrize("obj", UW_OBJECTS)

@@ -8,10 +8,10 @@ import itertools
 import numpy as np
 import pytest
 
-from worker import synthetic
-from worker.exact import _hull_pass, _sweep, above_index, exact_pixels
-from worker.milp import MilpSolver
-from worker.problem import REL_TOL, make_thresholds, slabs, usable
+from maxfs.worker import synthetic
+from maxfs.worker.exact import _hull_pass, _sweep, above_index, exact_pixels
+from maxfs.worker.milp import MilpSolver
+from maxfs.worker.problem import REL_TOL, make_thresholds, slabs, usable
 
 BOX = 10.0
 
@@ -239,8 +239,8 @@ _COUNT_VARIANTS = """
 import json
 import numpy as np
 from numba.core.registry import CPUDispatcher
-from worker import exact, synthetic
-from worker.problem import make_thresholds, slabs, usable
+from maxfs.worker import exact, synthetic
+from maxfs.worker.problem import make_thresholds, slabs, usable
 sc = synthetic.realistic_scene(48, 24, seed=3, bits=16)
 I = sc.images.reshape(48, -1).T.astype(np.float64)
 th = make_thresholds(48, 200.0)
@@ -252,6 +252,7 @@ print(json.dumps({n: len(f.overloads) for n, f in vars(exact).items() if isinsta
 """
 
 
+@pytest.mark.slow
 def test_every_kernel_is_compiled_once(tmp_path) -> None:
     """A process that compiles the kernels (an empty numba cache: a loaded cache holds only the
     entry point) ends with one variant of each kernel function: a second one (numba specialising

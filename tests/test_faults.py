@@ -15,11 +15,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from service.client import MaxfsClient
-from storage.layout import JobStore
-from storage.records import RECORD_NAME, load_record
+from maxfs.service.cli.client import MaxfsClient
+from maxfs.storage.layout import JobStore
+from maxfs.storage.records import RECORD_NAME, load_record
+from maxfs.worker.solve import Solution
+from tests.faults import fault_env
 from tests.procs import Procs, Server, poll_until
-from worker.solve import Solution
 
 OUTPUTS = ("normal", "albedo", "inliers", "inlier_count", "optimal")
 K, SIZE, TILE, EPS = 12, 64, 16, 2.0
@@ -64,7 +65,7 @@ def test_tile_task_that_raises_fails_the_job_and_resume_finishes_it(
     # the tiles of rows 32-47 (tiles 8-11 of the 4 x 4 grid) raise while the fault file exists
     fault = tmp_path / "fail-tiles"
     fault.write_text("8,9,10,11")
-    env = {"MAXFS_TILE_RETRIES": "1", "MAXFS_TEST_FAIL_TILES": f"@{fault}"}
+    env = {"MAXFS_TILE_RETRIES": "1", **fault_env(fail_tiles=fault)}
     server = server_factory(workers=2, env=env)
     with MaxfsClient(server.url) as c:
         job_id = _create(c, lights)
@@ -74,7 +75,7 @@ def test_tile_task_that_raises_fails_the_job_and_resume_finishes_it(
         st = c.wait(job_id, poll=0.1, timeout=180)
         assert st["state"] == "failed", st
         assert "tile " in st["error"] and "failed" in st["error"], st["error"]
-        assert "failure injected by MAXFS_TEST_FAIL_TILES" in st["error"], st["error"]
+        assert "failure injected by the test" in st["error"], st["error"]
         store = JobStore.open(tmp_path / "data" / "jobs" / job_id, mode="r")
         assert not store.done_grid()[2].any(), "a tile that raised was marked done"
         finished = np.flatnonzero(store.done_grid().ravel())

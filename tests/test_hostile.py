@@ -27,11 +27,12 @@ import pytest
 import tifffile
 from distributed import Client
 
-from service.client import MaxfsClient
-from service.loadgen import png_bomb
+from maxfs.service.cli.client import MaxfsClient
+from maxfs.worker import synthetic
 from tests.badrequests import Bad, Req, check_refused, run_setup, send
+from tests.faults import fault_env
+from tests.loadgen import png_bomb
 from tests.procs import BIN, DaskCluster, Server, poll_until
-from worker import synthetic
 
 MB = 1 << 20
 #: ``/health`` must answer within this while a hostile request is served (before: 4-18 s).
@@ -540,14 +541,14 @@ def test_concurrent_state_changes_stay_consistent(server: Server, cluster: DaskC
 
 
 def test_concurrent_uploads_cannot_eat_the_disk_reserve(cluster: DaskCluster, server_factory) -> None:
-    from storage.layout import JobSpec
+    from maxfs.storage.layout import JobSpec
 
     lights = synthetic.lights_uniform(6)
     need = JobSpec(6, 1024, 1024, None, "uint8", lights).validate().store_nbytes()
     free = need + 9 * MB  # the file system's free space, as the server is told (the reserve is 0)
     env = {
         "MAXFS_MIN_FREE_BYTES": "0",
-        "MAXFS_FAULT": f"free-bytes:{free}",
+        **fault_env(free_bytes=free),
         "MAXFS_MAX_UPLOADS_PER_USER": "100",
     }
     server = server_factory(scheduler=cluster.address, auth=True, env=env)
@@ -582,7 +583,7 @@ def test_concurrent_uploads_cannot_eat_the_disk_reserve(cluster: DaskCluster, se
 
 
 def test_large_answers_stream_and_previews_are_bounded(server: Server) -> None:
-    from storage.layout import JobStore
+    from maxfs.storage.layout import JobStore
 
     H = W = 2048
     patch = synthetic.sphere(6, 64)
@@ -613,8 +614,8 @@ def test_large_answers_stream_and_previews_are_bounded(server: Server) -> None:
             for s in streams:
                 s.__exit__(None, None, None)
         # each stalled download holds about one piece in its transport buffer and may be reading
-        # the next (service.streams.PIECE): 2 pieces each, and 20 MB for the rest, not 6 x 48 MB
-        from service.streams import PIECE
+        # the next (service.http.streams.PIECE): 2 pieces each, and 20 MB for the rest, not 6 x 48 MB
+        from maxfs.service.http.streams import PIECE
 
         _check(p, len(streams) * 2 * PIECE / MB + 20, "6 slow NPY readers of 48 MB and 4 stalled zips")
 
@@ -721,7 +722,7 @@ def test_delete_quota_index_retention_and_identity(strict: Server) -> None:
         assert {j["id"] for j in c.jobs()} == {b, d}
         rec.write_text(saved)
         # a running job is not deleted; a name revoked and made again is a new person
-        from storage.tokens import TokenStore
+        from maxfs.storage.tokens import TokenStore
 
         TokenStore(s.data / "maxfs-tokens.json").revoke("ann")
         ann2 = s.token("ann")
@@ -781,7 +782,7 @@ def test_connection_cap_answers_503_at_once(strict: Server) -> None:
 
 
 def test_interrupted_submit_resumes_into_the_same_job(server: Server, tmp_path: Path) -> None:
-    from storage.datasets import write_npy_folder
+    from maxfs.storage.datasets import write_npy_folder
 
     sc = synthetic.sphere(6, 64)
     folder = write_npy_folder(tmp_path / "in", sc.images.astype(np.uint8), sc.lights, sc.mask)

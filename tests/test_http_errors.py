@@ -14,9 +14,9 @@ import imagecodecs
 import numpy as np
 import pytest
 
+from maxfs.worker import synthetic
 from tests.badrequests import Bad, Req, Step, check_refused, run_setup, send
 from tests.procs import Server
-from worker import synthetic
 
 K, H, W = 4, 8, 6
 LIGHTS = synthetic.lights_uniform(K).tolist()

@@ -15,8 +15,8 @@ import pytest
 import tifffile
 from PIL import Image
 
-from storage.errors import InvalidInputError, PayloadTooLargeError
-from storage.imageio import decode_checked, probe_bytes
+from maxfs.storage.errors import InvalidInputError, PayloadTooLargeError
+from maxfs.storage.imageio import decode_checked, probe_bytes
 
 
 def _encode(fmt: str, a: np.ndarray) -> bytes:
@@ -70,7 +70,7 @@ def test_a_bomb_is_refused_from_its_header() -> None:
 
 
 def test_mask_images_follow_non_zero_is_object() -> None:
-    from service.guards import mask_of
+    from maxfs.service.http.guards import mask_of
 
     m = np.array([[0.0, -1.0], [np.nan, 0.5]], np.float32)
     np.testing.assert_array_equal(mask_of(m), [[False, True], [False, True]])

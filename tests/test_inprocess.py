@@ -11,12 +11,13 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pytest
 import zarr
 
-from storage.datasets import write_npy_folder
-from storage.layout import JobStore
+from maxfs.storage.datasets import write_npy_folder
+from maxfs.storage.layout import JobStore
+from maxfs.worker import synthetic
 from tests.procs import poll_until
-from worker import synthetic
 
 MAXFS = str(Path(sys.executable).parent / "maxfs")
 ARRAYS = (
@@ -48,6 +49,7 @@ def _run(folder: Path, out: Path, *extra: str, **env: str) -> subprocess.Complet
     )
 
 
+@pytest.mark.slow
 def test_threads_and_dask_cluster_give_identical_stores_and_finished_jobs_do_not_rerun(
     tmp_path: Path,
 ) -> None:
@@ -78,7 +80,7 @@ def test_threads_and_dask_cluster_give_identical_stores_and_finished_jobs_do_not
     assert JobStore.open(tmp_path / "threads.zarr", mode="r").run_counts() == before
     # and looking at it costs no solver: numba is never imported (0.3 s and the kernels' 0.7 s)
     probe = (
-        "import sys; from service.cli import main; "
+        "import sys; from maxfs.service.cli.main import main; "
         "sys.argv = ['maxfs', 'run', sys.argv[1], '-o', sys.argv[2]]; rc = main(); "
         "print(rc, sorted(m for m in sys.modules if m.split('.')[0] in ('numba', 'distributed')))"
     )
@@ -91,6 +93,7 @@ def test_threads_and_dask_cluster_give_identical_stores_and_finished_jobs_do_not
     assert look.stdout.strip().splitlines()[-1] == "0 []", look.stdout + look.stderr
 
 
+@pytest.mark.slow
 def test_ctrl_c_prints_one_line_and_the_same_command_resumes(tmp_path: Path) -> None:
     sc = synthetic.bump_scene(12, 96, seed=2)
     folder = write_npy_folder(tmp_path / "in", sc.images.astype(np.uint8), sc.lights, sc.mask)
@@ -133,11 +136,11 @@ def test_ctrl_c_prints_one_line_and_the_same_command_resumes(tmp_path: Path) -> 
 def test_a_failed_kernel_load_leaves_the_verdict_to_the_tiles(tmp_path: Path, monkeypatch) -> None:
     """The up-front load is an optimisation: if it fails, the run goes on and its tiles (which
     load the kernels again) decide, so a failure ends as a failed job with a reason, not a crash."""
-    import worker.task as task
-    from service.local import run_folder
-    from storage.datasets import load_folder
-    from storage.params import JobParams
-    from storage.records import JobState
+    import maxfs.worker.task as task
+    from maxfs.service.runs.local import run_folder
+    from maxfs.storage.inputs import load_folder
+    from maxfs.storage.params import JobParams
+    from maxfs.storage.records import JobState
 
     sc = synthetic.bump_scene(8, 32, seed=1)
     folder = write_npy_folder(tmp_path / "in", sc.images.astype(np.uint8), sc.lights, sc.mask)

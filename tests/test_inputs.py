@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 import tifffile
 
-from storage.datasets import load_folder
-from storage.errors import DatasetError, InvalidInputError
-from storage.folders import conditioning_warning, parse_selection, select_images
-from storage.imageio import encode_png
-from storage.layout import JobStore
-from worker import synthetic
+from maxfs.storage.errors import DatasetError, InvalidInputError
+from maxfs.storage.folders import conditioning_warning, parse_selection, select_images
+from maxfs.storage.imageio import encode_png
+from maxfs.storage.inputs import load_folder
+from maxfs.storage.layout import JobStore
+from maxfs.worker import synthetic
 
 MAXFS = str(Path(sys.executable).parent / "maxfs")
 
@@ -107,6 +107,6 @@ def test_cli_run_with_images_on_a_tiff_stack(tmp_path: Path) -> None:
     p = store.params
     assert (p.shadow, p.max_nodes, p.milp_time_limit) == (2.0, 5000, 5.0)
     # an in-process run keeps the stack in memory and records each image's digest
-    from storage.layout import array_digest
+    from maxfs.storage.layout import array_digest
 
     assert store.digests()[6] == array_digest(images[8])

@@ -1,12 +1,12 @@
 """Three users at once on a real server with auth: every job finishes, nobody reaches
 another user's job, and status answers while jobs run (latency is reported by
-``python -m bench.load``, not asserted here); the scenario is :mod:`service.loadgen`."""
+``python -m bench.load``, not asserted here); the scenario is :mod:`tests.loadgen`."""
 
 from __future__ import annotations
 
 from collections.abc import Callable
 
-from service.loadgen import run_load
+from tests.loadgen import run_load
 from tests.procs import Server
 
 

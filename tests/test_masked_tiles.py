@@ -8,10 +8,10 @@ import dataclasses
 import numpy as np
 import pytest
 
-from storage.observations import ObservationModel
-from worker import synthetic
-from worker.problem import make_thresholds
-from worker.solve import TileResult, solve_pixels, solve_tile
+from maxfs.storage.observations import ObservationModel
+from maxfs.worker import synthetic
+from maxfs.worker.problem import make_thresholds
+from maxfs.worker.solve import TileResult, solve_pixels, solve_tile
 
 
 def _reference(raw, L, obs, th, solver, mask) -> TileResult:

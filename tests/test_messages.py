@@ -39,8 +39,8 @@ def test_a_compile_is_told_by_numba_cache_misses_not_by_time(tmp_path: Path) -> 
     fresh module then loads from numba's cache, however long that takes: no note."""
     import numpy as np
 
-    from service.local import COMPILING
-    from worker.task import kernel_dispatchers, load_kernels
+    from maxfs.service.runs.local import COMPILING
+    from maxfs.worker.task import kernel_dispatchers, load_kernels
 
     src = tmp_path / "kern.py"
     src.write_text(KERNEL_SOURCE)
@@ -72,7 +72,7 @@ def test_a_compile_is_told_by_numba_cache_misses_not_by_time(tmp_path: Path) -> 
 
 
 def test_a_failed_kernel_load_raises_and_says_nothing() -> None:
-    from worker.task import load_kernels
+    from maxfs.worker.task import load_kernels
 
     said: list[str] = []
 
@@ -98,11 +98,11 @@ def test_maxfs_warm_says_loaded_from_the_cache_once_compiled() -> None:
 def test_a_wrong_image_is_named_from_1_with_its_file(tmp_path: Path) -> None:
     import numpy as np
 
-    from storage.datasets import load_folder
-    from storage.errors import DatasetError
-    from storage.folders import select_images
-    from storage.imageio import encode_png
-    from worker import synthetic
+    from maxfs.storage.errors import DatasetError
+    from maxfs.storage.folders import select_images
+    from maxfs.storage.imageio import encode_png
+    from maxfs.storage.inputs import load_folder
+    from maxfs.worker import synthetic
 
     k = 12
     for i in range(k):
@@ -120,7 +120,7 @@ def test_a_wrong_image_is_named_from_1_with_its_file(tmp_path: Path) -> None:
 
 # --- shares of the whole mask ------------------------------------------------------------------
 def _stopped(state):
-    from storage.records import JobRecord
+    from maxfs.storage.records import JobRecord
 
     # cancelled at 7 of 20 tiles: every finished pixel solved and certified
     return JobRecord(
@@ -136,10 +136,10 @@ def _stopped(state):
 
 
 def test_a_cancelled_job_reports_shares_of_the_whole_mask() -> None:
-    from service.cli import shares
-    from service.cliverbs import format_status
-    from service.models import status_body
-    from storage.records import JobState
+    from maxfs.service.cli.main import shares
+    from maxfs.service.cli.verbs import format_status
+    from maxfs.service.http.models import status_body
+    from maxfs.storage.records import JobState
 
     rec = _stopped(JobState.CANCELLED)
     said = shares(rec)
@@ -154,8 +154,8 @@ def test_a_cancelled_job_reports_shares_of_the_whole_mask() -> None:
 
 # --- the job page of a failed job ---------------------------------------------------------------
 def test_a_failed_job_says_why_and_offers_no_resume_that_fails_the_same_way() -> None:
-    from service.models import status_body
-    from storage.records import JobRecord, JobState
+    from maxfs.service.http.models import status_body
+    from maxfs.storage.records import JobRecord, JobState
 
     failed = JobRecord(id="j", state=JobState.FAILED, error="eps estimate failed: too dark", tiles_total=4)
     body = status_body(failed, "http://x")
@@ -183,7 +183,7 @@ def test_the_job_page_shows_the_note_and_hides_resume_of_a_failed_job() -> None:
 def test_progress_starts_with_counted_tiles_and_weighs_them_by_masked_pixels() -> None:
     import io
 
-    from service.cliverbs import Progress
+    from maxfs.service.cli.verbs import Progress
 
     out = io.StringIO()
     p = Progress(stream=out)
@@ -197,12 +197,13 @@ def test_progress_starts_with_counted_tiles_and_weighs_them_by_masked_pixels() -
 def test_other_parameters_into_an_existing_output_are_refused_and_nothing_is_lost(tmp_path: Path) -> None:
     import numpy as np
 
-    from service.local import ingest
-    from storage.datasets import load_folder, write_npy_folder
-    from storage.errors import ConflictError
-    from storage.layout import JobStore
-    from storage.params import JobParams
-    from worker import synthetic
+    from maxfs.service.runs.local import ingest
+    from maxfs.storage.datasets import write_npy_folder
+    from maxfs.storage.errors import ConflictError
+    from maxfs.storage.inputs import load_folder
+    from maxfs.storage.layout import JobStore
+    from maxfs.storage.params import JobParams
+    from maxfs.worker import synthetic
 
     sc = synthetic.bump_scene(6, 16, seed=2)
     ds = load_folder(write_npy_folder(tmp_path / "in", sc.images.astype(np.uint8), sc.lights, sc.mask))
@@ -219,7 +220,7 @@ def test_other_parameters_into_an_existing_output_are_refused_and_nothing_is_los
 
 # --- the command line ---------------------------------------------------------------------------------
 def _help(*argv: str, capsys) -> str:
-    from service.cli import main
+    from maxfs.service.cli.main import main
 
     with pytest.raises(SystemExit):
         main([*argv, "-h"])
@@ -240,7 +241,7 @@ def test_serve_and_token_create_have_their_own_help(capsys) -> None:
 
 
 def test_a_mistyped_option_gets_a_suggestion(capsys) -> None:
-    from service.cli import main
+    from maxfs.service.cli.main import main
 
     with pytest.raises(SystemExit) as e:
         main(["run", "folder", "-o", "out", "--esp", "2"])
@@ -260,8 +261,8 @@ def test_output_folders_are_described_one_way(capsys) -> None:
 def test_serve_on_a_busy_port_fails_before_starting_anything(tmp_path: Path) -> None:
     import socket
 
-    from service.cli import check_port_free
-    from storage.errors import ConflictError
+    from maxfs.service.cli.main import check_port_free
+    from maxfs.storage.errors import ConflictError
 
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -294,8 +295,8 @@ def test_maxfs_serve_on_a_busy_port_exits_at_once(tmp_path: Path) -> None:
 def _scene_folder(tmp_path: Path, size: int = 32) -> Path:
     import numpy as np
 
-    from storage.datasets import write_npy_folder
-    from worker import synthetic
+    from maxfs.storage.datasets import write_npy_folder
+    from maxfs.worker import synthetic
 
     sc = synthetic.bump_scene(8, size, seed=1)
     return write_npy_folder(tmp_path / "in", sc.images.astype(np.uint8), sc.lights, sc.mask)
@@ -355,9 +356,9 @@ def test_ctrl_c_in_the_first_seconds_prints_a_line_not_a_traceback(tmp_path: Pat
 
 # --- what the server's answers say -----------------------------------------------------------------
 def test_jobs_show_their_name_and_progress_weighed_by_pixels() -> None:
-    from service.cliverbs import format_status
-    from service.models import status_body
-    from storage.records import JobRecord, JobState
+    from maxfs.service.cli.verbs import format_status
+    from maxfs.service.http.models import status_body
+    from maxfs.storage.records import JobRecord, JobState
 
     rec = JobRecord(
         id="a" * 32,
@@ -374,8 +375,8 @@ def test_jobs_show_their_name_and_progress_weighed_by_pixels() -> None:
 
 
 def test_the_page_says_who_is_signed_in() -> None:
-    from service.routes import signed_in_as
-    from storage.tokens import User
+    from maxfs.service.http.routes import signed_in_as
+    from maxfs.storage.tokens import User
 
     assert signed_in_as(User("alice"), auth=True) == "alice"
     assert signed_in_as(User("root", admin=True), auth=True) == "root (admin)"
@@ -387,7 +388,7 @@ def test_the_page_says_who_is_signed_in() -> None:
 def test_submit_shows_upload_progress_on_a_terminal() -> None:
     import io
 
-    from service.cliverbs import UploadProgress
+    from maxfs.service.cli.verbs import UploadProgress
 
     class Terminal(io.StringIO):
         def isatty(self) -> bool:

@@ -7,13 +7,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from storage.layout import JobSpec, JobStore
-from storage.outputs import OUTPUT_TABLE, TILE_OUTPUTS, output_bytes_per_pixel
-from storage.params import JobParams
-from storage.tiles import Tile
-from worker import synthetic
-from worker.problem import make_thresholds
-from worker.solve import solve_tile
+from maxfs.storage.layout import JobSpec, JobStore
+from maxfs.storage.outputs import OUTPUT_TABLE, TILE_OUTPUTS, output_bytes_per_pixel
+from maxfs.storage.params import JobParams
+from maxfs.storage.tiles import Tile
+from maxfs.worker import synthetic
+from maxfs.worker.problem import make_thresholds
+from maxfs.worker.solve import solve_tile
 
 
 def _store(tmp_path: Path, channels: int | None, mask: np.ndarray | None = None) -> JobStore:

@@ -7,8 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
-from storage.layout import JobSpec, JobStore
-from storage.params import JobParams
+from maxfs.storage.layout import JobSpec, JobStore
+from maxfs.storage.params import JobParams
 
 
 def _colour_store(path: Path) -> JobStore:
@@ -23,7 +23,7 @@ def _colour_store(path: Path) -> JobStore:
 
 
 def test_export_names_albedo_as_the_store_does(tmp_path: Path) -> None:
-    from service.export import export
+    from maxfs.service.results.export import export
 
     store = _colour_store(tmp_path / "res")
     m = export(store.path, tmp_path / "x", items=("normal", "albedo"))
@@ -37,7 +37,7 @@ def test_export_names_albedo_as_the_store_does(tmp_path: Path) -> None:
 
 def test_docs_say_how_to_read_every_exported_file(tmp_path: Path) -> None:
     """docs/outputs.md has a line for each file an export writes (the mesh and depth included)."""
-    from service.export import export
+    from maxfs.service.results.export import export
 
     store = _colour_store(tmp_path / "res")
     m = export(store.path, tmp_path / "x")
@@ -47,8 +47,8 @@ def test_docs_say_how_to_read_every_exported_file(tmp_path: Path) -> None:
 
 
 def test_the_inlier_count_preview_has_a_legend(tmp_path: Path) -> None:
-    from service.local import write_previews
-    from storage.imageio import read_image
+    from maxfs.service.runs.local import write_previews
+    from maxfs.storage.imageio import read_image
 
     store = _colour_store(tmp_path / "res")
     store.group["inlier_count"][...] = np.full((16, 16), 3, np.uint16)

@@ -17,9 +17,9 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from service.client import MaxfsClient
+from maxfs.service.cli.client import MaxfsClient
+from maxfs.worker import synthetic
 from tests.procs import Server, poll_until
-from worker import synthetic
 
 LIGHTS = synthetic.lights_uniform(6)
 

@@ -11,11 +11,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from storage.imageio import encode_png
-from storage.layout import JobSpec, JobStore
-from storage.params import JobParams
-from worker.depth import integrate
-from worker.evaluate import evaluate, load_ground_truth
+from maxfs.storage.imageio import encode_png
+from maxfs.storage.layout import JobSpec, JobStore
+from maxfs.storage.params import JobParams
+from maxfs.worker.depth import integrate
+from maxfs.worker.evaluate import evaluate, load_ground_truth
 
 MAXFS = str(Path(sys.executable).parent / "maxfs")
 
@@ -173,7 +173,7 @@ def test_depth_of_bumps_on_a_two_piece_non_rectangular_mask() -> None:
 def test_depth_is_written_into_the_store_with_its_method(tmp_path: Path) -> None:
     import zarr
 
-    from service.research import write_depth
+    from maxfs.service.results.research import write_depth
 
     n, _, m = _sphere(40, 18)
     store = _store_with_normals(tmp_path / "out.zarr", n, m)
@@ -190,7 +190,7 @@ def test_export_cli_writes_images_arrays_and_a_mesh_that_trimesh_reads_back(tmp_
     import tifffile
     import trimesh
 
-    from storage.imageio import read_image
+    from maxfs.storage.imageio import read_image
 
     n, _, m = _sphere(40, 18)
     m[5:8, 18:21] = False  # a hole: the mesh must go around it
@@ -245,7 +245,7 @@ def test_export_cli_writes_images_arrays_and_a_mesh_that_trimesh_reads_back(tmp_
 
 
 def test_normal_preview_is_n_plus_one_over_two_in_all_channels() -> None:
-    from service.previews import normal_rgb
+    from maxfs.service.results.previews import normal_rgb
 
     n = np.array([[[0.0, 0.0, 1.0], [0.6, -0.8, 0.0], [np.nan, np.nan, np.nan]]])
     np.testing.assert_array_equal(normal_rgb(n), [[[128, 128, 255], [204, 25, 128], [0, 0, 0]]])
@@ -256,7 +256,7 @@ def test_normal_preview_is_n_plus_one_over_two_in_all_channels() -> None:
 def test_xarray_opens_a_job_store_with_named_dimensions(tmp_path: Path, channels: int | None) -> None:
     import xarray as xr
 
-    from service.research import write_depth
+    from maxfs.service.results.research import write_depth
 
     n, _, m = _sphere(24, 10)
     if channels is None:
@@ -297,6 +297,7 @@ def test_xarray_opens_a_job_store_with_named_dimensions(tmp_path: Path, channels
     assert ds.attrs["k"] == k and ds.attrs["params"]["tile"] == store.params.tile
 
 
+@pytest.mark.slow
 def test_run_reports_the_folders_own_ground_truth_and_gt_overrides_it(tmp_path: Path, diligent: Path) -> None:
     """A DiLiGenT folder's Normal_gt.mat is evaluated at the end of ``maxfs run``; ``--gt`` names
     another map, and the printed numbers are those of ``maxfs eval``."""

@@ -9,18 +9,18 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from storage.layout import JobSpec, JobStore
-from storage.observations import ObservationModel
-from storage.options import Estimate
-from storage.outputs import Source
-from storage.params import JobParams
-from worker import synthetic
-from worker.exact import exact_pixels
-from worker.milp import MilpSolver
-from worker.noise import estimate_eps, select_response
-from worker.problem import REL_TOL, candidates, make_thresholds, shading, slabs
-from worker.solve import eps_sample, solve, solve_pixels
-from worker.task import estimate_eps_of
+from maxfs.storage.layout import JobSpec, JobStore
+from maxfs.storage.observations import ObservationModel
+from maxfs.storage.options import Estimate
+from maxfs.storage.outputs import Source
+from maxfs.storage.params import JobParams
+from maxfs.worker import synthetic
+from maxfs.worker.exact import exact_pixels
+from maxfs.worker.milp import MilpSolver
+from maxfs.worker.noise import estimate_eps, select_response
+from maxfs.worker.problem import REL_TOL, candidates, make_thresholds, shading, slabs
+from maxfs.worker.solve import eps_sample, solve, solve_pixels
+from maxfs.worker.task import estimate_eps_of
 
 
 def _robust_pixels(k: int, seed: int, response: float, eps_rel: float, drop: float):

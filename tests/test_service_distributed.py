@@ -15,11 +15,11 @@ import numpy as np
 import pytest
 import zarr
 
-from service.client import MaxfsClient
-from storage.imageio import decode_bytes
-from storage.layout import JobStore
+from maxfs.service.cli.client import MaxfsClient
+from maxfs.storage.imageio import decode_bytes
+from maxfs.storage.layout import JobStore
+from maxfs.worker.solve import Solution
 from tests.procs import DaskCluster, Server, poll_until
-from worker.solve import Solution
 
 OUTPUTS = ("normal", "albedo", "inliers", "inlier_count", "optimal")
 
@@ -76,6 +76,7 @@ def _assert_equal(arrays: dict[str, np.ndarray], ref: Solution) -> None:
         )
 
 
+@pytest.mark.smoke
 def test_http_job_equals_in_process_solver(
     dask_cluster: DaskCluster, server_factory: Callable[..., Server], tmp_path: Path, data: Data
 ) -> None:

@@ -6,8 +6,8 @@ from pathlib import Path
 
 import pytest
 
-from service.settings import Settings, cluster_settings
-from storage.errors import InvalidInputError
+from maxfs.service.settings import Settings, cluster_settings
+from maxfs.storage.errors import InvalidInputError
 
 READS = [
     ("MAXFS_WORKERS", "3", "workers", 3),

@@ -22,10 +22,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from service.client import MaxfsClient
-from storage.datasets import load_folder
-from storage.layout import JobStore
+from maxfs.service.cli.client import MaxfsClient
+from maxfs.storage.inputs import load_folder
+from maxfs.storage.layout import JobStore
 from tests.procs import Server, poll_until
+
+pytestmark = pytest.mark.slurm
 
 REPO = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent

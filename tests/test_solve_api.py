@@ -5,12 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from storage.errors import InvalidInputError
-from storage.options import Solver
-from worker import synthetic
-from worker.milp import MilpSolver
-from worker.problem import make_thresholds, usable
-from worker.solve import solve, solve_pixels
+from maxfs.storage.errors import InvalidInputError
+from maxfs.storage.options import Solver
+from maxfs.worker import synthetic
+from maxfs.worker.milp import MilpSolver
+from maxfs.worker.problem import make_thresholds, usable
+from maxfs.worker.solve import solve, solve_pixels
 
 
 @pytest.mark.parametrize(("k", "paper_deg"), [(12, 0.138), (24, 0.085)])

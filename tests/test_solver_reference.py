@@ -7,10 +7,10 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
-from worker import synthetic
-from worker.exact import exact_pixels
-from worker.milp import MilpSolver
-from worker.problem import REL_TOL, make_thresholds, slabs, usable
+from maxfs.worker import synthetic
+from maxfs.worker.exact import exact_pixels
+from maxfs.worker.milp import MilpSolver
+from maxfs.worker.problem import REL_TOL, make_thresholds, slabs, usable
 
 
 @dataclass(frozen=True)

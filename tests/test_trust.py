@@ -17,10 +17,11 @@ import numpy as np
 import pytest
 import zarr
 
-from storage.datasets import write_npy_folder
-from storage.layout import MASK_WRITING, JobStore
+from maxfs.storage.datasets import write_npy_folder
+from maxfs.storage.layout import MASK_WRITING, JobStore
+from maxfs.worker import synthetic
+from tests.faults import fault_env
 from tests.procs import Server, poll_until
-from worker import synthetic
 
 MAXFS = str(Path(sys.executable).parent / "maxfs")
 
@@ -40,6 +41,7 @@ def _normals(out: Path) -> np.ndarray:
     return np.asarray(zarr.open_group(out / "results.zarr", mode="r")["normal"][...])
 
 
+@pytest.mark.slow
 def test_reused_output_of_another_object_is_refused_then_overwritten(tmp_path: Path, uw_psm: Path) -> None:
     out = tmp_path / "cat.zarr"
     assert _maxfs("run", str(uw_psm / "cat"), "-o", str(out), "--workers", "1").returncode == 0
@@ -57,6 +59,7 @@ def test_reused_output_of_another_object_is_refused_then_overwritten(tmp_path: P
     assert r.returncode == 0 and "tiles already done" in r.stderr
 
 
+@pytest.mark.slow
 def test_changed_image_content_is_refused_and_unchanged_inputs_resume(tmp_path: Path) -> None:
     folder = _scene_folder(tmp_path, "scene")
     out = tmp_path / "out.zarr"
@@ -149,7 +152,7 @@ def test_mask_cut_short_by_a_killed_server_is_never_used(
 ) -> None:
     sc = synthetic.bump_scene(6, 160, seed=1)
     images = sc.images.astype(np.uint8)
-    server = server_factory(workers=1, env={"MAXFS_FAULT": "pause-mask-write"})
+    server = server_factory(workers=1, env=fault_env(pause_mask_write=True))
     with httpx.Client(base_url=server.url, timeout=120) as http:
         jid = _job(http, images, sc.lights, tile=32)
         threading.Thread(target=_mask_put_until_killed, args=(http, jid, sc.mask), daemon=True).start()
@@ -218,8 +221,8 @@ def test_results_of_an_unfinished_job_say_so_and_fetch_refuses_them(
 def test_validating_lights_again_changes_no_bit() -> None:
     """The input identity digests validated lights: validating twice (loader, CLI, store)
     must not move them by an ulp, or a re-run would see "other inputs"."""
-    from storage.layout import JobSpec, lights_digest
-    from storage.options import check_lights
+    from maxfs.storage.layout import JobSpec, lights_digest
+    from maxfs.storage.options import check_lights
 
     rng = np.random.default_rng(0)
     raw = synthetic.lights_uniform(96) * (1 + 1e-7 * rng.standard_normal((96, 1)))

@@ -15,11 +15,11 @@ import httpx
 import numpy as np
 import pytest
 
-from service.app import create_app
-from service.settings import Settings
-from storage.layout import JobStore
+from maxfs.service.http.app import create_app
+from maxfs.service.settings import Settings
+from maxfs.storage.layout import JobStore
+from maxfs.worker import synthetic
 from tests.procs import Procs
-from worker import synthetic
 
 H, W = 1024, 1024
 TILE = 64  # one shard band = 64 rows = 1/16 of an image

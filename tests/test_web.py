@@ -18,11 +18,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from service.client import MaxfsClient
-from storage.errors import MaxfsError
+from maxfs.service.cli.client import MaxfsClient
+from maxfs.storage.errors import MaxfsError
+from maxfs.worker import synthetic
 from tests import browser
 from tests.procs import Server, poll_until
-from worker import synthetic
 
 #: The running job: the MILP solver on 128 x 128 pixels in 16 x 16 tiles takes tens of seconds on one
 #: worker, long enough to watch; the job started from the page is small and exact (a second or two).
@@ -124,6 +124,7 @@ def _accept_confirm(driver) -> None:
     poll_until(accepted, 10, "the confirmation dialog")
 
 
+@pytest.mark.smoke
 def test_job_page(server: Server, chrome, shots: Path) -> None:
     url = server.url
     with (
@@ -322,10 +323,10 @@ def _refs(node) -> list[str]:
 def test_openapi_is_generated_from_the_code_and_typed(server: Server, tmp_path: Path) -> None:
     import httpx
 
-    from service.app import create_app
-    from service.previews import HTTP_PREVIEWS
-    from service.settings import Settings
-    from storage.outputs import OUTPUT_NAMES as OUTPUTS
+    from maxfs.service.http.app import create_app
+    from maxfs.service.results.previews import HTTP_PREVIEWS
+    from maxfs.service.settings import Settings
+    from maxfs.storage.outputs import OUTPUT_NAMES as OUTPUTS
 
     live = httpx.get(server.url + "/openapi.json", timeout=30).json()
     assert live == create_app(Settings(data_dir=tmp_path, auth=True)).openapi()  # nothing written by hand
@@ -376,7 +377,7 @@ def test_openapi_is_generated_from_the_code_and_typed(server: Server, tmp_path: 
 def test_live_bodies_match_the_models(server: Server) -> None:
     import httpx
 
-    from service.models import ErrorBody, JobStatus
+    from maxfs.service.http.models import ErrorBody, JobStatus
 
     with MaxfsClient(server.url, server.tokens["alice"]) as alice:
         jid = _job(alice, 16, QUICK, start=True)

@@ -20,7 +20,7 @@ import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 
-from storage.errors import JobCancelledError
+from maxfs.storage.errors import JobCancelledError
 
 #: Seconds of solver work between two cancel points of the exact kernel (batches adapt to it).
 BATCH_SECONDS = 0.25

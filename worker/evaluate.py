@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from storage.errors import InvalidInputError
+from maxfs.storage.errors import InvalidInputError
 
 THRESHOLDS = (5.0, 10.0, 15.0, 20.0)
 
@@ -72,7 +72,7 @@ def load_ground_truth(path: Path | str) -> GroundTruth:
         return _from_vectors(m[cands[0]], str(path))
     if suffix == ".npy":
         return _from_vectors(np.load(path, allow_pickle=False), str(path))
-    from storage.imageio import read_image
+    from maxfs.storage.imageio import read_image
 
     img = read_image(path)
     if img.ndim != 3:

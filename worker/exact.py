@@ -48,8 +48,8 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
-from worker import cancel
-from worker.problem import REL_TOL
+from maxfs.worker import cancel
+from maxfs.worker.problem import REL_TOL
 
 _STACK = 256  # DFS depth bound; a box this deep is far below ``hmin`` already
 _HMIN_REL = 1e-4  # enumerate the vertices of boxes narrower than this times the widest half-width

@@ -27,8 +27,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import NDArray
 
-from worker.cancel import checkpoint
-from worker.problem import box_halfwidth, slabs
+from maxfs.worker.cancel import checkpoint
+from maxfs.worker.problem import box_halfwidth, slabs
 
 if TYPE_CHECKING:  # imported where a model is built: a run that needs no MILP never loads HiGHS
     import highspy

@@ -48,10 +48,10 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 from numpy.typing import NDArray
 
-from storage.errors import InvalidInputError
-from storage.options import Estimate
-from worker.lstsq import refit
-from worker.problem import drop_brightest
+from maxfs.storage.errors import InvalidInputError
+from maxfs.storage.options import Estimate
+from maxfs.worker.lstsq import refit
+from maxfs.worker.problem import drop_brightest
 
 #: eps = this many robust standard deviations of the inlier residuals.
 EPS_SIGMAS = 3.0

@@ -45,8 +45,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from storage.errors import InvalidInputError
-from storage.options import DEFAULT_BOX_FACTOR, MODEL_DEFAULTS, Model, check_options
+from maxfs.storage.errors import InvalidInputError
+from maxfs.storage.options import DEFAULT_BOX_FACTOR, MODEL_DEFAULTS, Model, check_options
 
 #: Relative tolerance for "point lies in slab"; scaled by the pixel's largest ``b_i``.
 REL_TOL = 1e-9

@@ -2,8 +2,8 @@
 
 Example
 -------
->>> from worker import synthetic
->>> from worker.solve import solve
+>>> from maxfs.worker import synthetic
+>>> from maxfs.worker.solve import solve
 >>> scene = synthetic.sphere(k=12, size=32)
 >>> sol = solve(scene.images, scene.lights, scene.mask, eps=1.0, saturation=255)
 >>> sol.normal.shape, sol.inliers.shape
@@ -19,9 +19,9 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from storage.errors import InvalidInputError
-from storage.observations import ObservationModel
-from storage.options import (
+from maxfs.storage.errors import InvalidInputError
+from maxfs.storage.observations import ObservationModel
+from maxfs.storage.options import (
     DEFAULT_BOX_FACTOR,
     DEFAULT_MAX_NODES,
     DEFAULT_MILP_TIME_LIMIT,
@@ -33,12 +33,12 @@ from storage.options import (
     check_lights,
     check_options,
 )
-from storage.outputs import TILE_OUTPUTS, Source
-from storage.tiles import DEFAULT_TILE, Tile, tiles
-from worker.lstsq import channel_albedo, normal_albedo, refit
-from worker.noise import estimate_model
-from worker.problem import Thresholds, make_thresholds, shading, usable
-from worker.solvers import SOLVERS, Batch
+from maxfs.storage.outputs import TILE_OUTPUTS, Source
+from maxfs.storage.tiles import DEFAULT_TILE, Tile, tiles
+from maxfs.worker.lstsq import channel_albedo, normal_albedo, refit
+from maxfs.worker.noise import estimate_model
+from maxfs.worker.problem import Thresholds, make_thresholds, shading, usable
+from maxfs.worker.solvers import SOLVERS, Batch
 
 
 @dataclass(frozen=True)

@@ -14,12 +14,12 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from storage.options import Solver
-from storage.outputs import Source
-from worker.exact import exact_pixels
-from worker.lstsq import refit
-from worker.milp import MilpSolver
-from worker.problem import Thresholds, candidates, slabs
+from maxfs.storage.options import Solver
+from maxfs.storage.outputs import Source
+from maxfs.worker.exact import exact_pixels
+from maxfs.worker.lstsq import refit
+from maxfs.worker.milp import MilpSolver
+from maxfs.worker.problem import Thresholds, candidates, slabs
 
 
 @dataclass(frozen=True)

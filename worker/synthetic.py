@@ -18,6 +18,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from maxfs.worker.evaluate import angular_error_deg  # noqa: F401 - scenes are checked with it
+
 _GOLDEN = np.pi * (3.0 - np.sqrt(5.0))
 
 
@@ -155,12 +157,6 @@ def bump_scene(
     mask &= ~rim
     normals = np.where(mask[..., None], normals, np.nan)
     return Scene(_finish(rad, noise, bits, seed), L, normals, np.where(mask, alb, 0.0), mask, 255.0)
-
-
-def angular_error_deg(est: NDArray[np.floating], truth: NDArray[np.floating]) -> NDArray[np.float64]:
-    """Angle in degrees between unit normals (..., 3); NaN where either is NaN."""
-    dot = np.clip(np.sum(np.asarray(est, np.float64) * truth, axis=-1), -1.0, 1.0)
-    return np.degrees(np.arccos(dot))
 
 
 def _relief(x: NDArray[np.float64], y: NDArray[np.float64]) -> tuple[NDArray[np.float64], ...]:

@@ -7,7 +7,6 @@ and changes nothing. HiGHS objects are built inside the task (not picklable).
 
 from __future__ import annotations
 
-import os
 import threading
 import time
 from collections.abc import Callable
@@ -18,13 +17,13 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from storage.errors import StoreError
-from storage.layout import JobStore
-from storage.options import Estimate
-from storage.tiles import Tile
-from worker.cancel import TileCancelled, cancel_points
-from worker.problem import make_thresholds
-from worker.solve import estimate_job, solve_tile
+from maxfs.storage.errors import StoreError
+from maxfs.storage.layout import JobStore
+from maxfs.storage.options import Estimate
+from maxfs.storage.tiles import Tile
+from maxfs.worker.cancel import TileCancelled, cancel_points
+from maxfs.worker.problem import make_thresholds
+from maxfs.worker.solve import estimate_job, solve_tile
 
 
 class TileStatus(StrEnum):
@@ -47,16 +46,6 @@ class TileOutcome:
     solved: int = 0  # pixels that got a normal
     certified: int = 0  # active pixels whose optimum is proved
     nodes: int = 0
-
-
-def _test_fault(tile_index: int) -> None:
-    """Tests only: ``MAXFS_TEST_FAIL_TILES="3,5"`` (or ``"@FILE"``, FILE holding "3,5" while it
-    exists) makes those tiles raise; see ``service.settings.Settings.test_fail_tiles``."""
-    fail = os.environ.get("MAXFS_TEST_FAIL_TILES", "")
-    if fail.startswith("@"):
-        fail = Path(fail[1:]).read_text() if Path(fail[1:]).exists() else ""
-    if str(tile_index) in fail.replace(" ", "").split(","):
-        raise RuntimeError(f"tile {tile_index}: failure injected by MAXFS_TEST_FAIL_TILES (tests only)")
 
 
 def run_tile(job_dir: str, tile_index: int, params_hash: str, time_limit: float | None = None) -> TileOutcome:
@@ -90,7 +79,6 @@ def compute_tile(
         return TileOutcome(tile_index, TileStatus.SKIPPED)
     if store.cancel_requested:
         return TileOutcome(tile_index, TileStatus.CANCELLED)
-    _test_fault(tile_index)
     mask = store.read_tile_mask(t)
     if not mask.any():  # nothing of the object here: fill values, no image read, no solve
         store.write_empty_tile(t, token)
@@ -174,8 +162,8 @@ def warm_up() -> bool:
 
     After an install (or a change to the kernel's source) this compiles them instead, about
     20 s on one core, and writes the cache every later process loads from (0.7 s)."""
-    from worker import synthetic
-    from worker.exact import exact_pixels
+    from maxfs.worker import synthetic
+    from maxfs.worker.exact import exact_pixels
 
     L = synthetic.lights_uniform(4)
     I = np.array([[100.0, 90.0, 80.0, 0.0]])
@@ -196,7 +184,7 @@ def kernel_dispatchers(module: object | None = None) -> list:
     from numba.core.registry import CPUDispatcher
 
     if module is None:
-        from worker import exact as module
+        from maxfs.worker import exact as module
     return [f for f in vars(module).values() if isinstance(f, CPUDispatcher)]
 
 

@@ -1,0 +1,283 @@
+"""The Python API: solve a folder or arrays with the CLI's defaults, open results as numpy.
+
+>>> import maxfs
+>>> r = maxfs.solve_folder("../shared/data/diligent-crop8/cat")   # doctest: +SKIP
+>>> r.normal.shape, r.albedo.shape, r.inliers.shape                # doctest: +SKIP
+((H, W, 3), (H, W), (k, H, W))
+
+Both solve functions run the same in-process runner as ``maxfs run`` (tiles on threads, the
+numba kernel releasing the GIL), so the normals are bit-identical to the command's. Without
+``output`` the job store is made in a temporary folder and removed once the arrays are read;
+with it, the store stays there (and a second call resumes it, exactly as ``maxfs run -o``).
+"""
+
+from __future__ import annotations
+
+import shutil
+import tempfile
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from maxfs.storage.errors import InvalidInputError, MaxfsError
+
+__all__ = ["Result", "open_result", "solve", "solve_folder"]
+
+
+@dataclass
+class Result:
+    """A finished job's per-pixel arrays, in memory (numpy).
+
+    Attributes
+    ----------
+    normal
+        (H, W, 3) float32 unit normals (x right, y up, z toward the camera); NaN where unsolved.
+    albedo
+        (H, W) float32 grey albedo in image units; 0 where unsolved.
+    inliers
+        (k, H, W) bool: image i obeys the Lambertian law at the pixel (the optimal inlier set).
+    inlier_count
+        (H, W) uint16, the number of inliers.
+    source
+        (H, W) uint8: 0 outside the mask, 1 optimum proved, 2 best found within the budget,
+        3 least-squares fit, 4 undetermined (see :class:`maxfs.storage.outputs.Source`).
+    mask
+        (H, W) bool, the pixels that were solved.
+    depth
+        (H, W) float32 height toward the camera, NaN outside the mask (None if not integrated).
+    albedo_rgb
+        (H, W, C) float32 per-channel albedo of colour input, else None.
+    eps, response
+        The tolerance and response g the job used (eps="auto" resolved).
+    params
+        Every solve parameter, by name.
+    path
+        The job store's folder, or None when it was a temporary one.
+    """
+
+    normal: NDArray[np.float32]
+    albedo: NDArray[np.float32]
+    inliers: NDArray[np.bool_]
+    inlier_count: NDArray[np.uint16]
+    source: NDArray[np.uint8]
+    mask: NDArray[np.bool_]
+    depth: NDArray[np.float32] | None
+    albedo_rgb: NDArray[np.float32] | None
+    eps: float | None
+    response: float | None
+    params: dict[str, Any] = field(default_factory=dict)
+    warnings: list[str] = field(default_factory=list)
+    path: Path | None = None
+
+    @property
+    def N(self) -> NDArray[np.float32]:
+        """The normals, as photometric stereo libraries call them."""
+        return self.normal
+
+    def to_xarray(self) -> Any:
+        """The arrays as an ``xarray.Dataset`` with coordinates: ``xyz`` ("x", "y", "z"),
+        ``image`` (1..k, as ``--images`` counts), ``channel`` (colour input), ``y`` and ``x`` (pixels).
+        Needs xarray (``pip install "maxfs-ps[research]"``)."""
+        import xarray as xr
+
+        k = self.inliers.shape[0]
+        h, w = self.albedo.shape
+        data: dict[str, Any] = {
+            "normal": (("y", "x", "xyz"), self.normal),
+            "albedo": (("y", "x"), self.albedo),
+            "inliers": (("image", "y", "x"), self.inliers),
+            "inlier_count": (("y", "x"), self.inlier_count),
+            "source": (("y", "x"), self.source),
+            "mask": (("y", "x"), self.mask),
+        }
+        coords: dict[str, Any] = {
+            "y": np.arange(h),
+            "x": np.arange(w),
+            "xyz": ["x", "y", "z"],
+            "image": np.arange(1, k + 1),
+        }
+        if self.depth is not None:
+            data["depth"] = (("y", "x"), self.depth)
+        if self.albedo_rgb is not None:
+            data["albedo_rgb"] = (("y", "x", "channel"), self.albedo_rgb)
+            c = self.albedo_rgb.shape[2]
+            coords["channel"] = ["r", "g", "b"][:c] if c <= 3 else np.arange(c)
+        attrs = {
+            "eps": self.eps,
+            "response": self.response,
+            **{f"param_{k}": str(v) for k, v in self.params.items()},
+        }
+        return xr.Dataset(data, coords=coords, attrs=attrs)
+
+
+def open_result(folder: str | Path) -> Result:
+    """The results of a job store (a ``maxfs run -o`` folder, or a fetched server job) in memory."""
+    from maxfs.storage.layout import JobStore
+    from maxfs.storage.records import load_record
+
+    store = JobStore.open(Path(folder), mode="r")
+    names = set(store.output_names())
+
+    def get(name: str) -> Any:
+        return store.read_output(name) if name in names else None
+
+    try:
+        rec = load_record(store.path)
+        eps, response, warnings = rec.eps, getattr(rec, "response", None), rec.warnings()
+    except MaxfsError:
+        eps, response, warnings = None, None, []
+    return Result(
+        normal=get("normal"),
+        albedo=get("albedo"),
+        inliers=get("inliers"),
+        inlier_count=get("inlier_count"),
+        source=get("source"),
+        mask=store.read_mask(),
+        depth=get("depth"),
+        albedo_rgb=get("albedo_rgb"),
+        eps=eps,
+        response=response,
+        params=store.params.to_json(),
+        warnings=warnings,
+        path=store.path,
+    )
+
+
+def solve_folder(
+    folder: str | Path,
+    output: str | Path | None = None,
+    *,
+    images: str | Sequence[int] | None = None,
+    workers: int | None = None,
+    overwrite: bool = False,
+    **options: Any,
+) -> Result:
+    """Solve a dataset folder (any layout ``maxfs run`` reads) exactly as ``maxfs run`` does.
+
+    Parameters
+    ----------
+    folder
+        The dataset folder (DiLiGenT, NPY stack, UW psm, TIFF stack or plain images + lights).
+    output
+        Keep the job store here (resumable, openable with :func:`open_result`); default: a
+        temporary folder, removed once the arrays are read.
+    images
+        Use only these images: ``"1-20,25"`` or a sequence of 1-based numbers.
+    workers
+        Threads (default ``MAXFS_WORKERS``).
+    overwrite
+        Replace an ``output`` that holds other inputs.
+    **options
+        Solve options by the CLI's names (``eps``, ``solver``, ``model``, ``tile``, ...;
+        ``maxfs run -h`` lists them); unset ones take the CLI's defaults.
+    """
+    from maxfs.storage.folders import parse_selection, select_images
+    from maxfs.storage.inputs import load_folder
+
+    ds = load_folder(folder)
+    if images is not None:
+        text = images if isinstance(images, str) else ",".join(str(int(i)) for i in images)
+        ds = select_images(ds, parse_selection(text, ds.k))
+    return _run(ds, output, workers, overwrite, options)
+
+
+def solve(
+    images: ArrayLike,
+    lights: ArrayLike,
+    mask: ArrayLike | None = None,
+    *,
+    intensities: ArrayLike | None = None,
+    output: str | Path | None = None,
+    workers: int | None = None,
+    overwrite: bool = False,
+    **options: Any,
+) -> Result:
+    """Solve an image stack held in memory, with the CLI's defaults and speed.
+
+    Parameters
+    ----------
+    images
+        (k, H, W) grey or (k, H, W, 3) colour; uint8 and uint16 are raw sensor values (a value
+        at the dtype's maximum is saturated), floats are used as float32.
+    lights
+        (k, 3) unit light directions (x right, y up, z toward the camera).
+    mask
+        Optional (H, W) bool: the pixels to solve (default: all).
+    intensities
+        Optional (k,) or (k, C) light intensities; images are divided by them.
+    output, workers, overwrite, **options
+        As for :func:`solve_folder`.
+    """
+    from maxfs.storage.datasets import Dataset
+
+    stack = np.asarray(images)
+    if stack.ndim not in (3, 4) or (stack.ndim == 4 and stack.shape[3] not in (1, 3)):
+        raise InvalidInputError(f"images must be (k, H, W) or (k, H, W, 3), got shape {stack.shape}")
+    if stack.ndim == 4 and stack.shape[3] == 1:
+        stack = stack[..., 0]
+    if stack.dtype.kind == "f" and stack.dtype != np.float32:
+        stack = stack.astype(np.float32)
+    if stack.dtype.name not in ("uint8", "uint16", "float32"):
+        raise InvalidInputError(f"images must be uint8, uint16 or float, got {stack.dtype}")
+    k, h, w = stack.shape[:3]
+    lights_arr = np.asarray(lights, dtype=np.float64)
+    if lights_arr.shape != (k, 3):
+        raise InvalidInputError(f"lights must be ({k}, 3) for {k} images, got shape {lights_arr.shape}")
+    m = None if mask is None else np.asarray(mask).astype(bool)
+    if m is not None and m.shape != (h, w):
+        raise InvalidInputError(f"mask must be ({h}, {w}) like the images, got shape {m.shape}")
+    inten = None if intensities is None else np.asarray(intensities, dtype=np.float64)
+    if inten is not None and inten.ndim == 1:
+        inten = inten[:, None]
+    ds = Dataset(
+        name="arrays",
+        layout="arrays",
+        k=k,
+        height=h,
+        width=w,
+        channels=stack.shape[3] if stack.ndim == 4 else None,
+        dtype=stack.dtype.name,
+        lights=lights_arr,
+        intensities=inten,
+        mask=m,
+        _reader=lambda i: stack[i],
+    )
+    return _run(ds, output, workers, overwrite, options)
+
+
+def _run(
+    ds: Any, output: str | Path | None, workers: int | None, overwrite: bool, options: Mapping[str, Any]
+) -> Result:
+    from maxfs.service.runs.local import run_folder
+    from maxfs.service.settings import Settings
+    from maxfs.storage.layout import JobSpec
+    from maxfs.storage.records import JobState
+    from maxfs.storage.requests import job_params
+
+    settings = Settings()
+    spec = JobSpec(ds.k, ds.height, ds.width, ds.channels, ds.dtype, ds.lights, ds.intensities).validate()
+    params = job_params(spec, options, settings.task_memory)
+    temp = output is None
+    out = Path(tempfile.mkdtemp(prefix="maxfs-")) / "result" if temp else Path(output)  # type: ignore[arg-type]
+    try:
+        store, rec = run_folder(
+            ds,
+            out,
+            params,
+            overwrite=overwrite,
+            workers=workers or settings.workers,
+            in_process_bytes=settings.in_process_bytes,  # larger stacks: the embedded cluster, as maxfs run
+        )
+        if rec.state is not JobState.DONE:
+            raise MaxfsError(f"the job ended {rec.state.value}: {rec.error or 'no reason recorded'}")
+        result = open_result(store.path)
+        if temp:
+            result.path = None
+        return result
+    finally:
+        if temp:
+            shutil.rmtree(out.parent, ignore_errors=True)

@@ -1,0 +1,289 @@
+"""A Python client for the maxfs-ps HTTP API (what ``maxfs submit/status/fetch`` use)."""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import shutil
+import tempfile
+import time
+import zipfile
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import httpx
+import numpy as np
+from numpy.typing import NDArray
+from pydantic import ValidationError
+
+from maxfs.service.http.models import ErrorBody, JobStatus
+from maxfs.service.http.statuses import error_for_status
+from maxfs.storage.datasets import Dataset
+from maxfs.storage.errors import ConflictError, MaxfsError
+from maxfs.storage.inputs import load_folder
+from maxfs.storage.records import FINAL_STATES, JobState
+
+#: Response header that marks partial results (the server's :data:`service.http.models.PARTIAL_HEADER`).
+PARTIAL_HEADER = "x-maxfs-partial"
+#: Bytes per piece of a streamed upload.
+UPLOAD_PIECE = 1 << 20
+
+
+def submission_label(ds: Dataset, meta: dict[str, Any]) -> str | None:
+    """The label that makes a submit of the same files with the same parameters resumable
+    (None for a dataset without files, e.g. one made in memory)."""
+    fp = ds.fingerprint()
+    if fp is None:
+        return None
+    blob = json.dumps({"files": fp, **meta}, sort_keys=True, default=str).encode()
+    return "submit-" + hashlib.sha256(blob).hexdigest()[:32]
+
+
+def answer_error(status: int, detail: str) -> MaxfsError:
+    """The error for an answer of HTTP ``status`` (:func:`service.http.statuses.error_for_status`); its
+    ``http_status`` says the status, so the CLI tells a failed server (5xx) from a refused request."""
+    err = error_for_status(status)(f"server said {status}: {detail}")
+    err.http_status = status  # type: ignore[attr-defined]
+    return err
+
+
+class MaxfsClient:
+    """Talks to one server. Errors come back as the server's :class:`MaxfsError` classes."""
+
+    def __init__(self, base_url: str, token: str | None = None, timeout: float = 120.0) -> None:
+        headers = {"Authorization": f"Bearer {token}"} if token else {}
+        self.http = httpx.Client(base_url=base_url.rstrip("/"), headers=headers, timeout=timeout)
+
+    def close(self) -> None:
+        self.http.close()
+
+    def __enter__(self) -> MaxfsClient:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def _call(self, method: str, url: str, **kw: Any) -> httpx.Response:
+        r = self.http.request(method, url, **kw)
+        if r.status_code >= 400:
+            try:  # every error the server makes is an ErrorBody; a proxy's may not be
+                detail = ErrorBody.model_validate_json(r.content).detail
+            except ValidationError:
+                detail = r.text
+            raise answer_error(r.status_code, detail)
+        return r
+
+    # -- jobs -------------------------------------------------------------------------------
+    def create_job(self, **meta: Any) -> dict[str, Any]:
+        return self._call("POST", "/jobs", json=meta).json()
+
+    def upload_image(self, job_id: str, index: int, image: NDArray) -> dict[str, Any]:
+        """Send one image as raw little-endian bytes, in 1 MiB pieces (no copy of the image)."""
+        arr = np.ascontiguousarray(image, dtype=image.dtype.newbyteorder("<"))
+        view = memoryview(arr.reshape(-1)).cast("B")
+
+        def pieces() -> Iterator[bytes]:
+            for o in range(0, len(view), UPLOAD_PIECE):
+                yield bytes(view[o : o + UPLOAD_PIECE])
+
+        return self._call(
+            "PUT",
+            f"/jobs/{job_id}/images/{index}",
+            content=pieces(),
+            headers={"Content-Type": "application/octet-stream", "Content-Length": str(arr.nbytes)},
+        ).json()
+
+    def upload_mask(self, job_id: str, mask: NDArray[np.bool_]) -> dict[str, Any]:
+        data = np.ascontiguousarray(mask, dtype=np.uint8).tobytes()
+        return self._call(
+            "PUT", f"/jobs/{job_id}/mask", content=data, headers={"Content-Type": "application/octet-stream"}
+        ).json()
+
+    def start(self, job_id: str) -> dict[str, Any]:
+        return self._call("POST", f"/jobs/{job_id}/start").json()
+
+    def status(self, job_id: str) -> dict[str, Any]:
+        return self._call("GET", f"/jobs/{job_id}").json()
+
+    def job(self, job_id: str) -> JobStatus:
+        """The job's status checked against, and typed as, the model the server documents
+        (:meth:`status` gives the body as a dict)."""
+        return JobStatus.model_validate(self.status(job_id))
+
+    def jobs(self) -> list[dict[str, Any]]:
+        return self._call("GET", "/jobs").json()
+
+    def job_list(self) -> list[JobStatus]:
+        """The jobs this token may see, oldest first, as typed models (:meth:`jobs`: as dicts)."""
+        return [JobStatus.model_validate(st) for st in self.jobs()]
+
+    def cancel(self, job_id: str) -> dict[str, Any]:
+        return self._call("DELETE", f"/jobs/{job_id}").json()
+
+    def delete(self, job_id: str) -> dict[str, Any]:
+        """Delete a job nothing runs for (cancel a queued or running one first), with its data."""
+        return self._call("DELETE", f"/jobs/{job_id}", params={"purge": "true"}).json()
+
+    def wait(
+        self,
+        job_id: str,
+        poll: float = 0.5,
+        timeout: float | None = None,
+        on_status: Callable[[dict[str, Any]], None] | None = None,
+    ) -> dict[str, Any]:
+        """Poll until the job is done, failed or cancelled."""
+        t0 = time.monotonic()
+        while True:
+            st = self.status(job_id)
+            if on_status:
+                on_status(st)
+            if st["state"] in FINAL_STATES:
+                return st
+            if timeout is not None and time.monotonic() - t0 > timeout:
+                raise TimeoutError(f"job {job_id} still {st['state']} after {timeout} s")
+            time.sleep(poll)
+
+    def fetch_array(self, job_id: str, name: str) -> NDArray:
+        r = self._call("GET", f"/jobs/{job_id}/results/{name}.npy")
+        return np.load(io.BytesIO(r.content), allow_pickle=False)
+
+    def fetch_zarr(
+        self, job_id: str, out: Path, *, partial: bool = False, inputs: bool = False, overwrite: bool = False
+    ) -> Path:
+        """Download the job's results (a zip) and unpack them as the job folder ``out``
+        (``out/results.zarr``, previews, record; the input stack only if ``inputs``).
+
+        A job that is not done has partial results (unfinished tiles hold fill values):
+        they are refused unless ``partial`` (use :meth:`wait` first to get complete ones).
+        An existing ``out`` is replaced only with ``overwrite``, and only if it holds maxfs results
+        (or nothing): the old folder goes once the new one is complete.
+        """
+        from maxfs.storage.layout import is_job_folder
+
+        out = Path(out)
+        if out.exists():
+            if not overwrite:
+                raise ConflictError(
+                    f"{out} already exists; choose a new output folder, or add --overwrite to replace it"
+                )
+            if not out.is_dir() or (any(out.iterdir()) and not is_job_folder(out)):
+                raise ConflictError(f"{out} holds something other than maxfs results; it is not replaced")
+        if not partial:
+            st = self.status(job_id)
+            if st["state"] != JobState.DONE:
+                p = st.get("progress", {})
+                raise ConflictError(
+                    f"job {job_id} is {st['state']} ({p.get('tiles_done', 0)} of {p.get('tiles_total', 0)} "
+                    "tiles finished), so its results are partial; wait for it (--wait) or fetch what is "
+                    "finished (--partial)"
+                )
+        with tempfile.TemporaryFile() as tmp:
+            url = f"/jobs/{job_id}/results.zip" + ("?inputs=true" if inputs else "")
+            with self.http.stream("GET", url) as r:
+                if r.status_code >= 400:
+                    r.read()
+                    raise answer_error(r.status_code, r.text)
+                if r.headers.get(PARTIAL_HEADER) == "true" and not partial:
+                    raise ConflictError(f"job {job_id} was restarted while fetching; its results are partial")
+                for chunk in r.iter_bytes():
+                    tmp.write(chunk)
+            tmp.seek(0)
+            staging = Path(
+                tempfile.mkdtemp(prefix=".maxfs-fetch-", dir=out.parent if out.parent.exists() else None)
+            )
+            try:
+                with zipfile.ZipFile(tmp) as zf:
+                    for name in zf.namelist():
+                        if name.startswith("/") or ".." in Path(name).parts:
+                            raise MaxfsError(f"refusing unsafe path {name!r} in the archive")
+                    zf.extractall(staging)
+                if out.exists():  # --overwrite: the old results go only now that the new ones are here
+                    old = staging.with_name(staging.name + "-old")
+                    out.rename(old)
+                    staging.rename(out)
+                    shutil.rmtree(old, ignore_errors=True)
+                else:
+                    staging.rename(out)
+            except BaseException:
+                shutil.rmtree(staging, ignore_errors=True)
+                raise
+        return out
+
+    def submit_folder(
+        self,
+        folder: Path | Dataset,
+        *,
+        name: str | None = None,
+        existing: str = "new",
+        on_upload: Callable[[int, int], None] | None = None,
+        **params: Any,
+    ) -> str:
+        """Create a job from a dataset folder (or an opened :class:`Dataset`, e.g. a selection of its
+        images), stream its images one by one, start it. ``name`` (default: the folder's name) is
+        how the job is shown; ``on_upload(sent, k)`` is called after each image.
+
+        Only one decoded image is in memory at a time (NPY stacks are read one image at a time).
+
+        **Resumable**: the job is labelled with a digest of the folder's files (paths, sizes,
+        times), the selection and the parameters. If this user already has an unfinished job with
+        that label (a submit cut short), it is continued: only its missing images are sent, then
+        it is started; one that is already queued or running is just returned. Two submits of one
+        folder at once both return the job that runs, whichever of them started it.
+
+        A *finished* job with that label (the same inputs and parameters, done) is, by ``existing``:
+        ``"new"`` ignored (a new job), ``"reuse"`` returned, ``"refuse"`` a :class:`ConflictError`
+        naming it (``maxfs submit`` without ``--reuse``: no silent re-upload and recompute).
+        """
+        if existing not in ("new", "reuse", "refuse"):
+            raise ValueError(f"existing must be new, reuse or refuse, got {existing!r}")
+        ds = folder if isinstance(folder, Dataset) else load_folder(folder)
+        meta: dict[str, Any] = {
+            "k": ds.k,
+            "height": ds.height,
+            "width": ds.width,
+            "channels": ds.channels or 1,
+            "dtype": ds.dtype,
+            "lights": ds.lights.tolist(),
+            "intensities": None if ds.intensities is None else np.asarray(ds.intensities).tolist(),
+            **{k: v for k, v in params.items() if v is not None},
+        }
+        label = submission_label(ds, meta)
+        jobs = self.jobs() if label is not None else []
+        found = next((j for j in jobs if j.get("label") == label and j["state"] not in FINAL_STATES), None)
+        done = next(
+            (j for j in reversed(jobs) if j.get("label") == label and j["state"] == JobState.DONE), None
+        )
+        if found is None and done is not None and existing != "new":
+            if existing == "reuse":
+                return done["id"]
+            raise ConflictError(
+                f"job {done['id']} ({done.get('name') or 'unnamed'}) already has results for these inputs "
+                f"and parameters; use it (--reuse, or `maxfs fetch {done['id']} -o FOLDER`), or delete it "
+                "to compute again"
+            )
+        if found is not None and found["state"] in (JobState.QUEUED, JobState.RUNNING):
+            return found["id"]
+        if found is None:
+            job_id = self.create_job(**meta, label=label, name=name or ds.name)["id"]
+            missing: list[int] = list(range(ds.k))
+        else:
+            job_id = found["id"]
+            missing = list(self.status(job_id).get("missing_images", range(ds.k)))
+        try:
+            sent = ds.k - len(missing)
+            for i in missing:
+                self.upload_image(job_id, i, ds.read(i))
+                sent += 1
+                if on_upload:
+                    on_upload(sent, ds.k)
+            if ds.mask is not None:
+                self.upload_mask(job_id, ds.mask)
+            self.start(job_id)
+        except ConflictError:
+            # another submit of the same folder finished the uploads and started it first
+            if self.status(job_id)["state"] not in (JobState.CREATED, JobState.UPLOADING):
+                return job_id  # whatever it ends as, it is this submit's job too (wait reports it)
+            raise
+        return job_id

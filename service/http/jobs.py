@@ -1,0 +1,414 @@
+"""The job manager: creates job stores, takes uploads, runs and cancels jobs.
+
+It owns the asynchronous Dask client (:mod:`service.runs.cluster`: an embedded
+LocalCluster, SLURM worker jobs, or an external scheduler, from settings) and
+one asyncio task per running job. On start it removes what a killed process left
+half-made (a job folder without a record, staged uploads, temp files) and
+resumes every job whose record says queued or running: a restarted server loses
+no finished tile and finishes what was in flight. Every job belongs to a user;
+other users get "no job" for it, as if it did not exist, unless they are admins.
+Per-user and disk limits are checked before anything is stored (:mod:`service.http.quotas`).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import shutil
+import tempfile
+import time
+import uuid
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+from distributed import Client
+from numpy.typing import NDArray
+
+from maxfs.service.http.guards import Decoder, DiskBudget, UploadSlots
+from maxfs.service.http.index import JobIndex
+from maxfs.service.http.quotas import JobLimits
+from maxfs.service.runs.cluster import DaskCluster, start_cluster
+from maxfs.service.runs.fairness import FairShare
+from maxfs.service.runs.local import finish
+from maxfs.service.runs.orchestrator import run_job
+from maxfs.service.settings import Settings
+from maxfs.storage.errors import (
+    ConflictError,
+    InvalidInputError,
+    NotFoundError,
+    QuotaError,
+    StoreError,
+)
+from maxfs.storage.layout import JobSpec, JobStore
+from maxfs.storage.params import JobParams
+from maxfs.storage.records import RECORD_NAME, TRANSITIONS, JobRecord, JobState, load_record, save_record
+from maxfs.storage.tokens import User
+
+log = logging.getLogger("maxfs.jobs")
+#: Prefix of every temporary file a process writes in a job folder (removed on start).
+TEMP_PREFIX = ".maxfs-"
+
+
+def owns(user: User, rec: JobRecord) -> bool:
+    """Whether ``rec`` is ``user``'s job: the same name, and the same person (a name revoked
+    and given a new token is someone else; see :mod:`storage.tokens`)."""
+    return rec.owner == user.name and (not rec.owner_uid or not user.uid or rec.owner_uid == user.uid)
+
+
+def _check_id(job_id: str) -> str:
+    if not (len(job_id) == 32 and all(c in "0123456789abcdef" for c in job_id)):
+        raise NotFoundError(f"no job {job_id!r}: job ids are 32 hexadecimal characters")
+    return job_id
+
+
+class JobManager:
+    """All jobs under ``settings.data_dir / 'jobs'``."""
+
+    def __init__(self, settings: Settings) -> None:
+        self.settings = settings
+        self.root = Path(settings.data_dir).absolute() / "jobs"  # workers may run elsewhere
+        self.client: Client | None = None
+        #: where tiles run (service.runs.cluster): embedded, SLURM worker jobs or an external scheduler
+        self.dask: DaskCluster | None = None
+        self.runs: dict[str, asyncio.Task] = {}
+        self.locks: dict[str, asyncio.Lock] = {}
+        self.specs: dict[str, JobSpec] = {}
+        s = settings
+        #: each user's jobs (service.http.index); every tile's priority (service.runs.fairness)
+        self.index = JobIndex()
+        self.fair = FairShare()
+        self.disk = DiskBudget(self.root, s.min_free_bytes)
+        self.uploads = UploadSlots(s.max_uploads_per_user)
+        self.decoder = Decoder(s.decode_slots)
+        #: quota and disk checks (service.http.quotas)
+        self.limits = JobLimits(s, self.index, self.disk, self._record_or_none)
+        self.sweeper: asyncio.Task | None = None
+
+    # -- life cycle ---------------------------------------------------------------------------
+    async def start(self) -> None:
+        self.root.mkdir(parents=True, exist_ok=True)
+        self.clean_orphans()
+        self.dask = await start_cluster(self.settings, log_dir=Path(self.settings.data_dir) / "slurm-logs")
+        self.client = self.dask.client
+        for job_dir in sorted(self.root.iterdir()):
+            try:
+                rec = load_record(job_dir)
+            except StoreError:
+                continue
+            self.index.add(rec)
+            if rec.state.active:
+                self._launch(rec.id)
+        if self.settings.retention_days > 0:
+            self.sweeper = asyncio.create_task(self._sweep_forever(), name="maxfs-retention")
+
+    def clean_orphans(self) -> list[Path]:
+        """Remove what a killed process left half-made; return what was removed.
+
+        A job folder without a record was cut short while being created (the
+        record is written last) and never given to anyone; staged uploads and
+        temp files belong to requests that can no longer finish.
+        """
+        removed: list[Path] = []
+        for d in sorted(self.root.iterdir()):
+            if d.is_dir() and not (d / RECORD_NAME).exists():
+                shutil.rmtree(d, ignore_errors=True)
+                removed.append(d)
+                continue
+            for p in d.glob(TEMP_PREFIX + "*") if d.is_dir() else []:
+                if p.is_file():
+                    p.unlink(missing_ok=True)
+                    removed.append(p)
+        # results.zip of older versions went through the system's temp folder
+        for p in Path(tempfile.gettempdir()).glob("maxfs-" + "[0-9a-f]" * 32 + "-*.zip"):
+            p.unlink(missing_ok=True)
+            removed.append(p)
+        for p in removed:
+            log.warning("removed orphan %s", p)
+        return removed
+
+    async def ensure_client(self) -> Client:
+        """The Dask client, made anew if the scheduler was lost and the old one gave up."""
+        assert self.dask is not None, "JobManager.start() was not awaited"
+        self.client = await self.dask.reconnect()
+        return self.client
+
+    async def close(self) -> None:
+        if self.sweeper is not None:
+            self.sweeper.cancel()
+            await asyncio.gather(self.sweeper, return_exceptions=True)
+        runs = list(self.runs.values())
+        for task in runs:
+            task.cancel()
+        await asyncio.gather(*runs, return_exceptions=True)
+        if self.dask is not None:
+            await self.dask.close()
+
+    # -- jobs ---------------------------------------------------------------------------------
+    def job_dir(self, job_id: str) -> Path:
+        d = self.root / _check_id(job_id)
+        if not d.is_dir():
+            raise NotFoundError(f"no job {job_id}")
+        return d
+
+    def lock(self, job_id: str) -> asyncio.Lock:
+        return self.locks.setdefault(job_id, asyncio.Lock())
+
+    def access(self, job_id: str, user: User) -> JobRecord:
+        """The record of a job ``user`` may see; someone else's job is "not found"."""
+        rec = self.record(job_id)
+        if not (user.admin or owns(user, rec)):
+            raise NotFoundError(f"no job {job_id}")
+        return rec
+
+    def _record_or_none(self, job_id: str) -> JobRecord | None:
+        try:
+            return self.record(job_id)
+        except (NotFoundError, StoreError):
+            return None
+
+    # -- limits (service.http.quotas), here so that callers need only the manager ------------------
+    def open_jobs(self, user: User) -> int:
+        """The user's unfinished jobs (reads only the records of those that may be)."""
+        return self.limits.open_jobs(user)
+
+    def check_disk(self, nbytes: int, what: str) -> None:
+        """Refuse (507) what would eat into the disk reserve (see :class:`service.http.quotas.JobLimits`)."""
+        self.limits.check_disk(nbytes, what)
+
+    def create(
+        self, spec: JobSpec, params: JobParams, user: User, label: str | None = None, name: str | None = None
+    ) -> JobRecord:
+        spec = spec.validate()
+        self.limits.check_limits(spec, user)
+        self.limits.check_tiles(spec, params)
+        job_id = uuid.uuid4().hex
+        d = self.root / job_id
+        try:
+            JobStore.create(d, spec, params)
+            rec = JobRecord(id=job_id, owner=user.name, owner_uid=user.uid, label=label, name=name)
+            save_record(d, rec)  # last: a folder without a record is an orphan
+        except BaseException:
+            shutil.rmtree(d, ignore_errors=True)
+            raise
+        self.index.add(rec)
+        return rec
+
+    def record(self, job_id: str) -> JobRecord:
+        return load_record(self.job_dir(job_id))
+
+    def store(self, job_id: str, mode: str = "r") -> JobStore:
+        return JobStore.open(self.job_dir(job_id), mode=mode)
+
+    def spec(self, job_id: str) -> JobSpec:
+        """A job's input spec (it never changes, so it is read once)."""
+        if job_id not in self.specs:
+            self.specs[job_id] = self.store(job_id).spec
+        return self.specs[job_id]
+
+    def list_jobs(self, user: User, everyone: bool = True) -> list[JobRecord]:
+        """Jobs ``user`` may see (an admin sees all when ``everyone``), oldest first; only
+        those records are read (:class:`service.http.index.JobIndex`)."""
+        ids = self.index.everyone() if user.admin and everyone else self.index.jobs_of(user.name)
+        out = []
+        for job_id in ids:
+            rec = self._record_or_none(job_id)
+            if rec is not None and ((user.admin and everyone) or owns(user, rec)):
+                out.append(rec)
+        return out
+
+    async def _write_before_start(
+        self, job_id: str, what: str, write: Callable[[JobStore], None], *, image: int | None
+    ) -> JobRecord:
+        """Run a store write while the job still takes uploads (under the job's lock, so a
+        cancel or start waits for it and sees its result); an image marks it uploading and
+        is recorded in the job record (status reads no store array)."""
+        event = "upload" if image is not None else "mask"
+        async with self.lock(job_id):
+            rec = self.record(job_id)
+            if rec.state not in TRANSITIONS[event]:
+                raise ConflictError(f"job {job_id} is {rec.state.value}; {what} only before start")
+            await asyncio.to_thread(write, self.store(job_id, "r+"))
+            rec = self.record(job_id)  # nothing else changes it meanwhile (the lock); re-read anyway
+            rec.state = rec.state.after(event)
+            if image is not None:
+                rec.uploaded_images = sorted({*rec.uploaded_images, image})
+            save_record(self.job_dir(job_id), rec)
+            return rec
+
+    async def upload_image(self, job_id: str, index: int, write: Callable[[JobStore], None]) -> JobRecord:
+        """Store image ``index`` with ``write(store)`` (e.g. :meth:`JobStore.write_bands`)."""
+        return await self._write_before_start(job_id, "images can be uploaded", write, image=index)
+
+    async def upload_mask(self, job_id: str, mask: NDArray[np.bool_]) -> JobRecord:
+        return await self._write_before_start(
+            job_id, "the mask can be set", lambda store: store.write_mask(mask), image=None
+        )
+
+    async def start_job(self, job_id: str, user: User) -> JobRecord:
+        """Start (or resume, after cancel or failure) a job whose images are all uploaded."""
+        async with self.lock(job_id):
+            rec = self.access(job_id, user)
+            if rec.state.active or job_id in self.runs:
+                raise ConflictError(f"job {job_id} is already {rec.state.value}")
+            if rec.state not in TRANSITIONS["start"]:
+                raise ConflictError(f"job {job_id} is already {rec.state.value}")
+            store = self.store(job_id)
+
+            def check_inputs() -> None:  # reads the store (the whole mask): in a thread
+                missing = np.flatnonzero(~store.uploaded())
+                if missing.size and rec.state is JobState.CANCELLED:
+                    # a cancelled job takes no more uploads (a cancel is final for its inputs)
+                    raise ConflictError(
+                        f"job {job_id} was cancelled before all its images were uploaded ({missing.size} "
+                        f"missing, first: {int(missing[0])}) and takes no more uploads; delete it "
+                        f"(DELETE /jobs/{job_id}?purge=true, `maxfs delete {job_id}`) and submit again"
+                    )
+                if missing.size:
+                    raise ConflictError(
+                        f"job {job_id} is missing {missing.size} images (first: {int(missing[0])}); "
+                        "upload them first"
+                    )
+                if store.mask_state() == "incomplete":
+                    raise ConflictError(
+                        f"job {job_id}: the mask upload was cut short (the server stopped while writing "
+                        "it); upload the mask again"
+                    )
+                if not store.read_mask().any():
+                    raise InvalidInputError(
+                        f"job {job_id}: the mask selects no pixel; upload a mask with some"
+                    )
+
+            await asyncio.to_thread(check_inputs)
+            if rec.state.final and self.open_jobs(User(rec.owner)) >= self.settings.max_open_jobs:
+                raise QuotaError(
+                    f"user {rec.owner!r} already has {self.settings.max_open_jobs} unfinished jobs; "
+                    "wait for one to finish before resuming this one"
+                )
+            await self.ensure_client()
+            rec.state = rec.state.after("start")
+            rec.error = None
+            save_record(self.job_dir(job_id), rec)
+            self.index.reopen(rec)
+            self._launch(job_id)
+            return rec
+
+    def _launch(self, job_id: str) -> None:
+        assert self.client is not None, "JobManager.start() was not awaited"
+        owner = self.index.owner.get(job_id, ("", ""))[0]
+
+        async def go() -> None:
+            try:
+                await run_job(
+                    self.client,
+                    self.job_dir(job_id),
+                    progress_interval=self.settings.progress_interval,
+                    retries=self.settings.tile_retries,
+                    fair=self.fair,
+                    user=owner,
+                    tile_time_limit=self.settings.tile_time_limit or None,
+                    finish=finish,  # previews and depth, as `maxfs run` makes them
+                )
+            except asyncio.CancelledError:
+                raise
+            except Exception as e:  # never leave a job "running" with nothing running it
+                log.exception("job %s stopped by an internal error", job_id)
+                self._fail(job_id, f"internal error: {type(e).__name__}: {e}")
+            finally:
+                self.runs.pop(job_id, None)
+
+        task = asyncio.create_task(go(), name=f"maxfs-job-{job_id}")
+        self.runs[job_id] = task
+        # a task cancelled before it ever ran skips go()'s finally: forget it here too, or every
+        # later start would find it and answer 409
+        task.add_done_callback(lambda t: self.runs.pop(job_id, None) if self.runs.get(job_id) is t else None)
+
+    def _fail(self, job_id: str, reason: str) -> None:  # the run task's last word: no lock needed
+        try:
+            rec = self.record(job_id)
+            if rec.state.active:
+                rec.state, rec.error, rec.finished_at = JobState.FAILED, reason, time.time()
+                save_record(self.job_dir(job_id), rec)
+        except Exception:
+            log.exception("cannot record the failure of job %s", job_id)
+
+    async def cancel(self, job_id: str, user: User) -> JobRecord:
+        """Cancel a job: nothing more starts, and running tiles stop at their next cancel
+        point (within about a second: :mod:`worker.cancel`), writing nothing.
+
+        Under the job's lock: an upload in progress finishes first (and the job then takes
+        no more), a start waits and then finds the job cancelled (and may resume it)."""
+        async with self.lock(job_id):
+            rec = self.access(job_id, user)
+            if rec.state not in TRANSITIONS["cancel"]:
+                raise ConflictError(f"job {job_id} is already {rec.state.value}")
+            self.store(job_id, "r+").request_cancel()
+            task = self.runs.get(job_id)
+            if task is not None:
+                task.cancel()
+                await asyncio.gather(task, return_exceptions=True)
+                self.runs.pop(job_id, None)
+            rec = self.record(job_id)
+            if rec.state in TRANSITIONS["cancel"]:  # never started, or the run did not record it
+                rec.state, rec.finished_at = rec.state.after("cancel"), time.time()
+                save_record(self.job_dir(job_id), rec)
+            elif rec.state is not JobState.CANCELLED:  # it finished (or failed) just before
+                raise ConflictError(f"job {job_id} is already {rec.state.value}")
+            return rec
+
+    async def delete(self, job_id: str, user: User) -> JobRecord:
+        """Delete a job nothing runs for (created, uploading, done, failed, cancelled): its
+        folder goes, its quota slot is free. A queued or running job must be cancelled first."""
+        async with self.lock(job_id):
+            rec = self.access(job_id, user)
+            if rec.state not in TRANSITIONS["delete"] or job_id in self.runs:
+                raise ConflictError(
+                    f"job {job_id} is {rec.state.value}; cancel it first (DELETE without purge), "
+                    "then delete it"
+                )
+            trash = self._unlink_job(job_id)
+        await asyncio.to_thread(shutil.rmtree, trash, True)
+        self.locks.pop(job_id, None)
+        return rec
+
+    def _unlink_job(self, job_id: str) -> Path:
+        """Take a job out of the index and its folder out of ``jobs/`` (renamed, to be removed)."""
+        trash = self.root / f"{TEMP_PREFIX}deleting-{job_id}"
+        self.job_dir(job_id).rename(trash)  # tile tasks still finishing see their folder gone
+        self.index.remove(job_id)
+        self.specs.pop(job_id, None)
+        return trash
+
+    async def sweep(self, now: float | None = None) -> list[str]:
+        """Delete jobs past the retention period (``MAXFS_RETENTION_DAYS``): finished ones
+        after their end, created or uploading ones after their last change."""
+        days = self.settings.retention_days
+        if days <= 0:
+            return []
+        cutoff = (now or time.time()) - days * 86400
+        gone = []
+        for job_id in self.index.everyone():
+            rec = self._record_or_none(job_id)
+            if rec is None or rec.state.active or job_id in self.runs:
+                continue
+            when = rec.finished_at if rec.state.final and rec.finished_at else rec.updated_at
+            if when >= cutoff:
+                continue
+            async with self.lock(job_id):
+                if job_id in self.runs or self._record_or_none(job_id) != rec:
+                    continue  # changed meanwhile
+                trash = self._unlink_job(job_id)
+            await asyncio.to_thread(shutil.rmtree, trash, True)
+            self.locks.pop(job_id, None)
+            log.info("deleted job %s of %s: past the retention period (%g days)", job_id, rec.owner, days)
+            gone.append(job_id)
+        return gone
+
+    async def _sweep_forever(self) -> None:
+        period = min(3600.0, max(self.settings.retention_days * 86400 / 4, 0.5))
+        while True:
+            try:
+                await self.sweep()
+            except Exception:
+                log.exception("retention sweep failed; trying again later")
+            await asyncio.sleep(period)

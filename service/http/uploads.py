@@ -1,0 +1,126 @@
+"""Upload staging: an image or mask upload from the checks before its body to the store.
+
+Owner, state, index, declared size and disk space are checked before the body is read
+(:meth:`Uploads.before_upload`, :func:`service.http.guards.check_declared`); an image body is
+streamed to a staging file in the job folder, validated whole, then written to the store
+one shard band at a time (:func:`raw_bands`), so the server holds one band of one image per
+request, whatever k is, and a rejected upload leaves the store as it was.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+from fastapi import Request
+
+from maxfs.service.http.auth import user_of
+from maxfs.service.http.guards import check_declared, is_raw, mask_of, read_body, stage_body
+from maxfs.service.http.jobs import TEMP_PREFIX, JobManager
+from maxfs.service.settings import Settings
+from maxfs.storage.errors import ConflictError, InvalidInputError, NotFoundError
+from maxfs.storage.layout import JobSpec, JobStore
+
+
+def raw_bands(path: Path, spec: JobSpec, rows: int) -> Iterator[np.ndarray]:
+    """Bands of ``rows`` rows of a raw little-endian image file."""
+    wire = np.dtype(spec.dtype).newbyteorder("<")
+    row_shape = spec.image_shape[1:]
+    per_row = int(np.prod(row_shape))
+    with open(path, "rb") as f:
+        for y in range(0, spec.height, rows):
+            n = min(rows, spec.height - y)
+            band = np.fromfile(f, dtype=wire, count=n * per_row).reshape(n, *row_shape)
+            yield band.astype(spec.dtype, copy=False)
+
+
+class Uploads:
+    """Takes image and mask uploads for the jobs of one :class:`JobManager`."""
+
+    def __init__(self, manager: JobManager, settings: Settings) -> None:
+        self.m = manager
+        self.s = settings
+
+    def before_upload(self, request: Request, job_id: str, what: str) -> JobStore:
+        """Owner and state checks that need no body, so a doomed upload is refused unread."""
+        rec = self.m.access(job_id, user_of(request))
+        if not rec.state.accepts_uploads:
+            raise ConflictError(f"job {job_id} is {rec.state.value}; {what} only before start")
+        return self.m.store(job_id)
+
+    async def image(self, request: Request, job_id: str, index: int) -> None:
+        """Store image ``index`` from the request body: raw little-endian bytes, or PNG/TIFF."""
+        try:
+            await self._image(request, job_id, index)
+        except FileNotFoundError:
+            if self.m.job_dir(job_id).exists():
+                raise
+            # deleted (purge or retention) while the body arrived: its staging file went too
+            raise NotFoundError(f"job {job_id} was deleted during the upload") from None
+
+    async def _image(self, request: Request, job_id: str, index: int) -> None:
+        store = self.before_upload(request, job_id, "images can be uploaded")
+        spec = store.spec
+        store.check_index(index)
+        raw = is_raw(request)
+        limit = spec.image_nbytes if raw else min(self.s.max_upload_bytes, 2 * spec.image_nbytes + (1 << 20))
+        check_declared(request, limit)
+        user, s = user_of(request), self.s
+        # the staged body (at most its declared length) and the stored image are reserved
+        # before a byte is written
+        declared = request.headers.get("content-length", "")
+        staged = min(limit, int(declared)) if declared.isdigit() else limit
+        with self.m.uploads.take(user.name), self.m.disk.hold(spec.image_nbytes + staged, f"image {index}"):
+            part = await stage_body(
+                request, self.m.job_dir(job_id), f"{TEMP_PREFIX}upload-{index}-", limit, s.upload_idle_timeout
+            )
+            try:
+                size = part.stat().st_size
+                if raw:
+                    if size != spec.image_nbytes:
+                        raise InvalidInputError(
+                            f"image {index}: got {size} bytes, expected {spec.image_nbytes} "
+                            f"({' x '.join(map(str, spec.image_shape))} {spec.dtype}, little-endian, "
+                            "row-major); for a PNG or TIFF file send Content-Type: image/png or image/tiff"
+                        )
+
+                    def write(st: JobStore) -> None:
+                        st.write_bands(index, raw_bands(part, spec, st.band_rows))
+
+                else:  # header checked before any pixel is decoded; decoded in a thread
+                    img = await self.m.decoder.decode_file(
+                        part,
+                        f"image {index}",
+                        max_bytes=2 * spec.image_nbytes + (1 << 20),
+                        shape=spec.image_shape,
+                        dtype=spec.dtype,
+                    )
+
+                    def write(st: JobStore) -> None:
+                        st.write_image(index, img)
+
+                await self.m.upload_image(job_id, index, write)
+            finally:
+                part.unlink(missing_ok=True)
+
+    async def mask(self, request: Request, job_id: str) -> None:
+        """Store the object mask from the request body: PNG (non-zero = object) or raw H*W bytes."""
+        spec = self.before_upload(request, job_id, "the mask can be set").spec
+        HW = spec.height * spec.width
+        with self.m.uploads.take(user_of(request).name), self.m.disk.hold(2 * HW, "the mask"):
+            data = await read_body(request, 2 * HW + (1 << 20), self.s.upload_idle_timeout)
+            if is_raw(request):
+                if len(data) != HW:
+                    raise InvalidInputError(
+                        f"mask: got {len(data)} bytes, expected {HW} (one byte per pixel, non-zero = "
+                        "object); for a PNG or TIFF file send Content-Type: image/png or image/tiff"
+                    )
+                mask = np.frombuffer(data, dtype=np.uint8).reshape(spec.height, spec.width) > 0
+            else:  # header checked first (a small file cannot declare a huge mask); decoded in a thread
+                m = await self.m.decoder.decode(
+                    data, "mask", max_bytes=4 * 4 * HW + (1 << 20), hw=(spec.height, spec.width)
+                )
+                mask = mask_of(m)
+            del data
+            await self.m.upload_mask(job_id, mask)

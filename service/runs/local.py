@@ -1,0 +1,275 @@
+"""Running a dataset folder on this machine: what ``maxfs run`` and ``maxfs demo`` do.
+
+The output is a job store (see :mod:`storage.layout`); running again on the same
+output resumes from its finished tiles. Parameters that differ from the stored
+ones make every tile count as unfinished (their done markers no longer match).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import shutil
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from maxfs.service.results.previews import PREVIEW_INPUTS, PREVIEWS, render, with_legend
+from maxfs.service.runs.progress import ProgressFn
+from maxfs.service.runs.timings import Timings
+from maxfs.service.settings import Settings, cluster_settings, runs_in_process
+from maxfs.storage.datasets import Dataset
+from maxfs.storage.errors import ConflictError, InvalidInputError, StoreError
+from maxfs.storage.imageio import encode_png
+from maxfs.storage.layout import GROUP_DIR, JobSpec, JobStore, array_digest, is_job_folder, lights_digest
+from maxfs.storage.params import JobParams
+from maxfs.storage.records import JobRecord, JobState, load_record, save_record
+from maxfs.storage.stack import StackReader
+
+#: Said when numba misses its cache while loading the solver kernels: they are being compiled.
+COMPILING = (
+    "compiling the exact solver for this machine: once after an install, about 20 s "
+    "(`maxfs warm` does it ahead of time)"
+)
+
+
+def ingest(
+    ds: Dataset, out: Path, params: JobParams, *, overwrite: bool = False, copy_images: bool = True
+) -> tuple[JobStore, str]:
+    """Create or reopen the output store for ``ds``; copy images not yet stored (into a
+    new store only if ``copy_images``: :func:`run_folder` may keep them in memory and
+    store only their digests instead).
+
+    A store that already holds *other* inputs (images, mask, lights or intensities,
+    compared by content digest) is refused unless ``overwrite``, which removes it and
+    starts from scratch. Unchanged inputs are recognised from the files' fingerprint
+    (paths, sizes, times) without decoding them again. Returns the store and a note
+    for the user ("" when nothing notable happened).
+    """
+    out = Path(out)
+    spec = JobSpec(ds.k, ds.height, ds.width, ds.channels, ds.dtype, ds.lights, ds.intensities).validate()
+    note = ""
+    if out.exists() and not out.is_dir():
+        raise ConflictError(f"{out} is a file; give a folder path for the results")
+    if out.exists() and any(out.iterdir()):
+        if not is_job_folder(out):
+            raise ConflictError(
+                f"{out} is not empty and holds no maxfs results; choose a new or empty output folder"
+            )
+        if overwrite:
+            shutil.rmtree(out)
+    if (out / GROUP_DIR / "zarr.json").exists():
+        store = JobStore.open(out)
+        _check_same_inputs(store, ds, spec, out, copy_images)
+        old = store.params
+        comparable = old.unresolved() if params.eps is None else old
+        if comparable != params:
+            # never a quiet replacement: a sweep into one folder would keep only its last run
+            raise ConflictError(
+                f"{out} holds results made with other parameters ({param_changes(comparable, params)}); "
+                "choose another output folder (-o) to keep both, or add --overwrite to replace them"
+            )
+        else:
+            note = (
+                f"resuming {out}: {int(store.done_grid().sum())} of {len(store.tiles())} tiles already done"
+            )
+        try:
+            load_record(out)
+        except StoreError:
+            save_record(out, JobRecord(id=out.name))
+    else:
+        store = JobStore.create(out, spec, params)
+        save_record(out, JobRecord(id=out.name))
+        if ds.mask is not None:
+            store.write_mask(ds.mask)
+        for i in range(ds.k) if copy_images else ():
+            store.write_image(i, ds.read(i))
+    store.source_fingerprint = ds.fingerprint()
+    if not store.read_mask().any():
+        raise InvalidInputError(f"the mask of {ds.name} selects no pixel; nothing to solve")
+    return store, note
+
+
+def param_changes(old: JobParams, new: JobParams) -> str:
+    """'eps 1.0 -> 2.0, tile 64 -> 32': the options that differ, as the user gives them."""
+    a, b = old.to_json(), new.to_json()
+    shown = {"eps_request": "eps", "response_request": "response", "eps": None, "response": None}
+    return (
+        ", ".join(
+            f"{shown.get(k, k)} {a[k]} -> {b[k]}"
+            for k in a
+            if a[k] != b.get(k) and shown.get(k, k) is not None
+        )
+        or "eps or response"
+    )
+
+
+def _check_same_inputs(store: JobStore, ds: Dataset, spec: JobSpec, out: Path, copy_images: bool) -> None:
+    """Refuse a store that holds other inputs than ``ds``; complete a cut-short ingest.
+
+    Images already stored are compared by digest (decoding each file once, unless the
+    files' fingerprint is unchanged); missing ones, and a mask cut short, are written.
+    """
+
+    def differ(what: str) -> ConflictError:
+        return ConflictError(
+            f"{out} holds results for other inputs ({what} differ from {ds.name}); run again with "
+            "--overwrite to replace them, or choose another output folder"
+        )
+
+    s = store.spec
+    if (s.k, s.height, s.width, s.channels, s.dtype) != (ds.k, ds.height, ds.width, ds.channels, ds.dtype):
+        raise differ(f"{s.k} images of {s.height} x {s.width} {s.dtype}: the image count, size or type")
+    if store.lights_digest != lights_digest(spec):
+        raise differ("the light directions or intensities")
+    stored = store.digests()  # k + 1 chunks each, like uploaded: read once, and only when needed
+    known = store.known_images(stored)
+    fp = ds.fingerprint()
+    same_files = fp is not None and fp == store.source_fingerprint
+    same_files = same_files and store.input_identity(stored) is not None
+    uploaded = store.uploaded() if copy_images or not same_files else None
+    if uploaded is not None and not (same_files and uploaded.all()):
+        new: dict[int, bytes] = {}
+        for i in range(ds.k):
+            if same_files and uploaded[i]:
+                continue
+            img = ds.read(i)
+            d = array_digest(img)
+            if known[i] and d != stored[i]:
+                raise differ(f"the images ({ds.label(i)} first)")
+            if copy_images and not uploaded[i]:
+                store.write_image(i, img)
+            elif not known[i]:
+                new[i] = d
+        store.record_digests(new)
+    state = store.mask_state()
+    if ds.mask is None:
+        if state != "default":
+            raise differ("the masks")
+    elif state == "incomplete":
+        store.write_mask(ds.mask)
+    elif state == "default" or array_digest(np.ascontiguousarray(ds.mask, dtype=bool)) != stored[s.k]:
+        raise differ("the masks")
+
+
+async def _run(out: Path, settings: Settings, on_progress: ProgressFn | None) -> JobRecord:
+    from maxfs.service.runs.cluster import open_cluster  # imports distributed: only for cluster runs
+    from maxfs.service.runs.orchestrator import run_job
+
+    # SLURM worker jobs write their logs beside the results (a shared filesystem either way)
+    out = out.absolute()  # workers elsewhere have other working folders
+    async with open_cluster(settings, log_dir=out / "slurm-logs") as dc:
+        return await run_job(dc.client, out, on_progress=on_progress)
+
+
+def run_store(
+    out: Path,
+    *,
+    scheduler: str = "",
+    workers: int = 2,
+    cluster: str = "",
+    on_progress: ProgressFn | None = None,
+) -> JobRecord:
+    """Run every unfinished tile of the store at ``out`` on a Dask cluster (the embedded
+    one, SLURM worker jobs, or ``scheduler``); write previews and derived results when done."""
+    rec = asyncio.run(_run(Path(out), cluster_settings(scheduler, workers, cluster), on_progress))
+    if rec.state is JobState.DONE:
+        finish(Path(out))
+    return rec
+
+
+def finish(out: Path, timings: Timings | None = None) -> None:
+    """What a finished job gets besides its arrays: previews, depth (:mod:`service.results.research`)."""
+    from maxfs.service.results.research import finish_results
+
+    tm = timings or Timings()
+    with tm.phase("previews"):
+        write_previews(JobStore.open(out, mode="r"))
+    with tm.phase("depth and derived results"):
+        finish_results(out)
+
+
+def run_folder(
+    ds: Dataset,
+    out: Path,
+    params: JobParams,
+    *,
+    overwrite: bool = False,
+    scheduler: str = "",
+    workers: int = 2,
+    cluster: str = "",
+    in_process_bytes: int = 2 << 30,
+    on_note: Callable[[str], None] | None = None,
+    on_progress: ProgressFn | None = None,
+    timings: Timings | None = None,
+    prefetch: StackReader | None = None,
+) -> tuple[JobStore, JobRecord]:
+    """``maxfs run``: ingest ``ds`` into ``out`` (or resume it) and solve every tile.
+
+    On the ``local`` cluster (no ``scheduler``, ``cluster`` unset or "local") and a stack of at
+    most ``in_process_bytes``, tiles run on ``workers`` threads in this process
+    (:mod:`service.runs.inprocess`) with the images held in memory and only their digests stored;
+    otherwise on a Dask cluster (:mod:`service.runs.cluster`): the embedded one, SLURM
+    worker jobs, or ``scheduler``. A finished job is not run again: it costs a look at
+    its done markers. Results are bit-identical either way. ``prefetch``: the stack, being
+    decoded since the folder was opened (used in process, cancelled otherwise).
+    """
+    out = Path(out)
+    tm = timings or Timings()
+    # a refused store, an interrupt or a run that did not need them: the decoding threads stop too
+    with prefetch or contextlib.nullcontext():
+        settings = cluster_settings(scheduler, workers, cluster)
+        in_process = runs_in_process(settings, ds.nbytes, in_process_bytes)
+        with tm.phase("open or create the store"):
+            store, note = ingest(ds, out, params, overwrite=overwrite, copy_images=not in_process)
+        if note and on_note:
+            on_note(note)
+        if store.done_grid().all() and (out / "previews").is_dir():
+            return store, load_record(out)  # finished earlier with these inputs and parameters
+        if in_process:
+            with tm.phase("imports"):  # the solver (numba) only now: a finished job never loads it
+                from maxfs.service.runs.inprocess import run_in_process
+                from maxfs.worker.task import load_kernels
+
+            images = None
+            if not store.uploaded().all():  # the stack stays in memory; only its digests are stored
+                with tm.phase("read images"):
+                    images = read_stack(ds, store, workers, prefetch)
+            if store.params.solver == "exact":
+                with tm.phase("load the solver"):  # its own row: 0.7 s from the cache, or a compile
+                    try:
+                        load_kernels(on_compile=(lambda: on_note(COMPILING)) if on_note else None)
+                    except Exception:  # the first tile raises it again, and the job fails with it
+                        pass
+            rec = run_in_process(out, threads=workers, images=images, on_progress=on_progress, timings=tm.add)
+        else:
+            with tm.phase("cluster run (start, tiles, stop)"):
+                rec = asyncio.run(_run(out, settings, on_progress))
+        if rec.state is JobState.DONE:
+            finish(out, tm)
+        return store, rec
+
+
+def read_stack(ds: Dataset, store: JobStore, threads: int, reader: StackReader | None = None) -> NDArray:
+    """The whole stack in memory, decoded on ``threads`` threads (PNG/TIFF decoders release the
+    GIL), or taken from ``reader`` (started earlier, :class:`storage.stack.StackReader`); each
+    image's digest is recorded in the store where it is not yet known, in one write."""
+    images, digests = (reader or StackReader(ds, threads)).result()
+    known = store.known_images()
+    store.record_digests({i: d for i, d in enumerate(digests) if not known[i]})
+    return images
+
+
+def write_previews(store: JobStore) -> list[Path]:
+    """PNG previews under ``previews/`` in the job directory."""
+    d = store.path / "previews"
+    d.mkdir(exist_ok=True)
+    arrays = {n: store.read_output(n) for n in store.output_names() if n in PREVIEW_INPUTS}
+    paths = []
+    for name in PREVIEWS:
+        p = d / f"{name}.png"
+        p.write_bytes(encode_png(with_legend(name, render(name, arrays, store.spec.k), store.spec.k)))
+        paths.append(p)
+    return paths
