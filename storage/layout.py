@@ -17,7 +17,7 @@ edge, chunks are tile-aligned)::
     optimal       (H, W)          bool
     source        (H, W)          uint8                 how the normal was obtained (worker.solve.Source)
     depth         (H, W)          float32               once integrated after the run
-    xyz, image, channel           coordinates: "x" "y" "z"; image numbers 1..k; "R" "G" "B" or "grey"
+    xyz, image, channel           coordinates: "x" "y" "z"; image numbers 1..k; "r" "g" "b" or "grey"
     inputs/images (k, H, W[, C])  uint8|uint16|float32  chunks (1, T, T[, C]) in shards (1, T, W'[, C])
     inputs/uploaded (k,)          bool                  chunks (1,)   set after images[i]
     inputs/input_digests (k + 1, 32) uint8              chunks (1, 32)    BLAKE2b of image i; row k: mask
@@ -111,7 +111,7 @@ PATHS: dict[str, str] = {
 #: Arrays that hold the input stack: left out of result downloads unless asked for.
 BULK_INPUTS = frozenset({PATHS["images"]})
 #: Names of the colour channels: the ``channel`` coordinate (one "grey" for grey input).
-CHANNEL_NAMES = {None: ("grey",), 3: ("R", "G", "B")}
+CHANNEL_NAMES = {None: ("grey",), 3: ("r", "g", "b")}  # as maxfs.Result.to_xarray names them
 #: ``input_digests[k]`` while a mask is being written (a crash leaves it there).
 MASK_WRITING = bytes([0xFF]) * DIGEST_BYTES
 RUNS_LOG = "maxfs-runs.log"

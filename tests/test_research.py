@@ -277,7 +277,7 @@ def test_xarray_opens_a_job_store_with_named_dimensions(tmp_path: Path, channels
     # coordinates: the normal's components and channels by name, images numbered from 1
     assert list(ds["xyz"].values) == ["x", "y", "z"] and list(ds["image"].values) == list(range(1, k + 1))
     assert ds["normal"].sel(xyz="z").dims == ("y", "x")
-    assert list(ds["channel"].values) == (["grey"] if channels is None else ["R", "G", "B"])
+    assert list(ds["channel"].values) == (["grey"] if channels is None else ["r", "g", "b"])
     # only results: the input stack and the tile bookkeeping are in subgroups, still one call away
     assert not {"images", "uploaded", "input_digests", "done", "tile_stats"} & set(ds.variables)
     inputs = xr.open_zarr(store.path / "results.zarr", group="inputs", consolidated=False)
