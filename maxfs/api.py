@@ -30,120 +30,93 @@ __all__ = ["Result", "open_result", "solve", "solve_folder"]
 
 @dataclass
 class Result:
-    """A finished job's per-pixel arrays, in memory (numpy).
+    """A finished job's per-pixel arrays, in memory (numpy), one attribute per output array of
+    :data:`maxfs.storage.outputs.OUTPUT_TABLE` (an array the job does not have is None):
 
-    Attributes
-    ----------
-    normal
+    ``normal``
         (H, W, 3) float32 unit normals (x right, y up, z toward the camera); NaN where unsolved.
-    albedo
-        (H, W) float32 grey albedo in image units; 0 where unsolved.
-    inliers
-        (k, H, W) bool: image i obeys the Lambertian law at the pixel (the optimal inlier set).
-    inlier_count
-        (H, W) uint16, the number of inliers.
-    source
+    ``albedo``
+        (H, W) float32 grey albedo in image units; 0 where unsolved (``albedo_rgb``: (H, W, C)
+        per colour channel of colour input).
+    ``inliers``
+        (k, H, W) bool: image i obeys the Lambertian law at the pixel (the optimal inlier set);
+        ``inlier_count`` (H, W) uint16 its size; ``optimal`` (H, W) bool: the optimum is proved.
+    ``source``
         (H, W) uint8: 0 outside the mask, 1 optimum proved, 2 best found within the budget,
-        3 least-squares fit, 4 undetermined (see :class:`maxfs.storage.outputs.Source`).
-    mask
+        3 least-squares fit, 4 undetermined (:class:`maxfs.storage.outputs.Source`).
+    ``mask``
         (H, W) bool, the pixels that were solved.
-    depth
+    ``depth``
         (H, W) float32 height toward the camera, NaN outside the mask (None if not integrated).
-    albedo_rgb
-        (H, W, C) float32 per-channel albedo of colour input, else None.
-    eps, response
-        The tolerance and response g the job used (eps="auto" resolved).
-    params
-        Every solve parameter, by name.
-    path
-        The job store's folder, or None when it was a temporary one.
+
+    Besides: ``eps`` and ``response`` (what the job used, "auto" resolved), ``params`` (every
+    solve parameter by name), ``warnings`` (what a user must hear about the result) and ``path``
+    (the job store's folder, None when it was a temporary one).
     """
 
-    normal: NDArray[np.float32]
-    albedo: NDArray[np.float32]
-    inliers: NDArray[np.bool_]
-    inlier_count: NDArray[np.uint16]
-    source: NDArray[np.uint8]
-    mask: NDArray[np.bool_]
-    depth: NDArray[np.float32] | None
-    albedo_rgb: NDArray[np.float32] | None
-    eps: float | None
-    response: float | None
+    arrays: dict[str, NDArray[Any] | None]
+    eps: float | None = None
+    response: float | None = None
     params: dict[str, Any] = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
     path: Path | None = None
 
+    def __getattr__(self, name: str) -> Any:
+        arrays = self.__dict__.get("arrays", {})
+        if name in arrays:
+            return arrays[name]
+        raise AttributeError(f"Result has no {name!r}; its arrays: {', '.join(arrays)}")
+
+    def __dir__(self) -> list[str]:
+        return sorted({*super().__dir__(), *self.arrays})
+
     @property
     def N(self) -> NDArray[np.float32]:
         """The normals, as photometric stereo libraries call them."""
-        return self.normal
+        return self.arrays["normal"]  # type: ignore[return-value]
 
     def to_xarray(self) -> Any:
-        """The arrays as an ``xarray.Dataset`` with coordinates: ``xyz`` ("x", "y", "z"),
-        ``image`` (1..k, as ``--images`` counts), ``channel`` (colour input), ``y`` and ``x`` (pixels).
-        Needs xarray (``pip install "maxfs-ps[research]"``)."""
+        """The arrays as an ``xarray.Dataset`` with the store's dimension names and coordinates:
+        ``xyz`` ("x", "y", "z"), ``image`` (1..k, as ``--images`` counts), ``channel`` ("r", "g", "b"
+        for colour input), ``y`` and ``x`` (pixel rows and columns). Needs xarray
+        (``pip install "maxfs-ps[research]"``)."""
         import xarray as xr
 
-        k = self.inliers.shape[0]
-        h, w = self.albedo.shape
-        data: dict[str, Any] = {
-            "normal": (("y", "x", "xyz"), self.normal),
-            "albedo": (("y", "x"), self.albedo),
-            "inliers": (("image", "y", "x"), self.inliers),
-            "inlier_count": (("y", "x"), self.inlier_count),
-            "source": (("y", "x"), self.source),
-            "mask": (("y", "x"), self.mask),
-        }
+        from maxfs.storage.outputs import OUTPUTS_BY_NAME
+
+        data = {name: (OUTPUTS_BY_NAME[name].dims, a) for name, a in self.arrays.items() if a is not None}
+        sizes = {d: n for dims, a in data.values() for d, n in zip(dims, a.shape, strict=True)}
         coords: dict[str, Any] = {
-            "y": np.arange(h),
-            "x": np.arange(w),
+            "y": np.arange(sizes["y"]),
+            "x": np.arange(sizes["x"]),
             "xyz": ["x", "y", "z"],
-            "image": np.arange(1, k + 1),
         }
-        if self.depth is not None:
-            data["depth"] = (("y", "x"), self.depth)
-        if self.albedo_rgb is not None:
-            data["albedo_rgb"] = (("y", "x", "channel"), self.albedo_rgb)
-            c = self.albedo_rgb.shape[2]
+        if "image" in sizes:
+            coords["image"] = np.arange(1, sizes["image"] + 1)
+        if "channel" in sizes:
+            c = sizes["channel"]
             coords["channel"] = ["r", "g", "b"][:c] if c <= 3 else np.arange(c)
-        attrs = {
-            "eps": self.eps,
-            "response": self.response,
-            **{f"param_{k}": str(v) for k, v in self.params.items()},
-        }
-        return xr.Dataset(data, coords=coords, attrs=attrs)
+        attrs = {"eps": self.eps, "response": self.response}
+        attrs |= {f"param_{k}": str(v) for k, v in self.params.items()}
+        return xr.Dataset(data, coords=coords, attrs={k: v for k, v in attrs.items() if v is not None})
 
 
 def open_result(folder: str | Path) -> Result:
     """The results of a job store (a ``maxfs run -o`` folder, or a fetched server job) in memory."""
     from maxfs.storage.layout import JobStore
+    from maxfs.storage.outputs import OUTPUT_TABLE
     from maxfs.storage.records import load_record
 
     store = JobStore.open(Path(folder), mode="r")
-    names = set(store.output_names())
-
-    def get(name: str) -> Any:
-        return store.read_output(name) if name in names else None
-
+    present = set(store.output_names())
+    arrays = {o.name: store.read_output(o.name) if o.name in present else None for o in OUTPUT_TABLE}
     try:
         rec = load_record(store.path)
         eps, response, warnings = rec.eps, getattr(rec, "response", None), rec.warnings()
     except MaxfsError:
         eps, response, warnings = None, None, []
     return Result(
-        normal=get("normal"),
-        albedo=get("albedo"),
-        inliers=get("inliers"),
-        inlier_count=get("inlier_count"),
-        source=get("source"),
-        mask=store.read_mask(),
-        depth=get("depth"),
-        albedo_rgb=get("albedo_rgb"),
-        eps=eps,
-        response=response,
-        params=store.params.to_json(),
-        warnings=warnings,
-        path=store.path,
+        arrays, eps=eps, response=response, params=store.params.to_json(), warnings=warnings, path=store.path
     )
 
 

@@ -21,6 +21,9 @@ from maxfs.storage.errors import InvalidInputError
 DEFAULT_BOX_FACTOR = 10.0
 #: Pixel types of stored images (and of every loader and upload).
 DTYPES = ("uint8", "uint16", "float32")
+#: What every entry point (CLI, HTTP, ``worker.solve.solve()``, ``maxfs demo``) does with no options.
+DEFAULT_EPS = "auto"
+DEFAULT_MODEL = "robust"
 #: Per-pixel search budget of the exact solver before it falls back to the MILP.
 DEFAULT_MAX_NODES = 200_000
 #: Seconds the MILP may spend on one pixel (as reference, or as fallback).
@@ -53,12 +56,14 @@ class ModelDefaults:
     drop_bright: float
     fallback: bool
     noise_by_intensity: bool  # eps=auto: noise where the model fits best (worker.noise)
+    shadow_slabs: bool = False  # a shadow is the one-sided slab L.n <= I + t, an inlier when it holds
+    mirror_deg: float = 0.0  # reject lit candidates this close to the mirror direction (worker.outliers)
 
 
 #: The defaults of each model; ``robust`` was chosen by measurement (bench/accuracy.py).
 MODEL_DEFAULTS = {
     Model.PAPER: ModelDefaults(False, 1.0, 0.0, 1.0, 0.0, False, False),
-    Model.ROBUST: ModelDefaults(True, "auto", 0.0, 1.0 / 3.0, 0.3, True, True),
+    Model.ROBUST: ModelDefaults(True, "auto", 0.0, 1.0 / 3.0, 0.0, True, True, True, 20.0),
 }
 #: Range of the response exponent g (given or estimated).
 RESPONSE_RANGE = (0.2, 5.0)
@@ -243,7 +248,7 @@ class Option:
 
 #: Every solve option, in the order the CLI's help and the OpenAPI schema list them.
 SOLVE_OPTIONS: tuple[Option, ...] = (
-    Option("eps", "float|auto", "Lambertian tolerance, or auto (estimated from the data)", "auto"),
+    Option("eps", "float|auto", "Lambertian tolerance, or auto (estimated from the data)", DEFAULT_EPS),
     Option(
         "solver",
         "choice",
@@ -266,15 +271,15 @@ SOLVE_OPTIONS: tuple[Option, ...] = (
     Option(
         "model",
         "choice",
-        "robust (dequantised input, response and eps estimated, brightest 30% of each pixel's "
-        "images rejected, a fallback fit) or paper (Yu, Seo, Lee 2010 as published)",
-        Model.ROBUST.value,
+        "robust (dequantised input, response and eps estimated, shadows as one-sided slabs, "
+        "near-mirror highlights rejected, a fallback fit) or paper (Yu, Seo, Lee 2010 as published)",
+        DEFAULT_MODEL,
         tuple(m.value for m in Model),
     ),
     Option("response", "float|auto", "g of I = (L.n)^g, or auto (robust: auto; paper: 1)"),
     Option("eps_rel", "float", "tolerance eps + eps_rel * I (default 0)"),
     Option(
-        "drop_bright", "float", "share of each pixel's brightest candidates that are outliers (robust: 0.3)"
+        "drop_bright", "float", "share of each pixel's brightest candidates that are outliers (default 0)"
     ),
     Option("dequantize", "bool", "integer input: read v > 0 as v + 0.5 (robust: true)"),
     Option("fallback", "bool", "least squares where Max-FS gives no normal (robust: true)"),

@@ -89,3 +89,14 @@ def test_wheel_installs_only_maxfs(tmp_path: Path) -> None:
     assert tops == {"maxfs"}
     names = zipfile.ZipFile(wheel).namelist()
     assert "maxfs/service/static/page/index.html" in names and "maxfs/worker/exact.py" in names
+
+
+def test_a_result_has_every_output_of_the_table(folder) -> None:
+    from maxfs.storage.outputs import OUTPUT_TABLE
+
+    r = maxfs.solve_folder(folder[0], solver="l2")
+    for o in OUTPUT_TABLE:
+        a = getattr(r, o.name)
+        assert a is None if not o.exists(None) else a.shape == o.shape(12, 40, 40, None), o.name
+    with pytest.raises(AttributeError, match="its arrays"):
+        r.normals  # noqa: B018

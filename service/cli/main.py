@@ -259,6 +259,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from maxfs.storage.datasets import write_npy_folder
     from maxfs.storage.inputs import load_folder
     from maxfs.storage.layout import JobStore
+    from maxfs.storage.options import DEFAULT_EPS, DEFAULT_MODEL
     from maxfs.storage.params import JobParams
     from maxfs.worker import synthetic
 
@@ -271,7 +272,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
     store, rec = run_folder(
         load_folder(folder),
         out / "result",
-        JobParams.build(eps=1.0, tile=args.tile),
+        # the defaults of `maxfs run` (storage.options), so the demo shows what a run does
+        JobParams.build(eps=DEFAULT_EPS, model=DEFAULT_MODEL, tile=args.tile),
         workers=args.workers or Settings().workers,
         on_note=lambda note: print(note, file=sys.stderr),
         on_progress=_progress(),

@@ -22,11 +22,11 @@ from distributed.comm.core import CommClosedError
 from maxfs.service.runs.cluster import check_store_visible, result
 from maxfs.service.runs.fairness import BATCH as FAIR_BATCH
 from maxfs.service.runs.fairness import FairShare
-from maxfs.service.runs.progress import ProgressFn, RunCounter, count_finished, resolve_eps
+from maxfs.service.runs.lifecycle import JobRun
+from maxfs.service.runs.progress import ProgressFn
 from maxfs.storage.errors import JobCancelledError
-from maxfs.storage.layout import JobStore
-from maxfs.storage.records import JobRecord, JobState, load_record, save_record
-from maxfs.worker.task import TileOutcome, TileStatus, estimate_store_eps, run_tile
+from maxfs.storage.records import JobRecord, JobState
+from maxfs.worker.task import TileOutcome, estimate_store_eps, run_tile
 
 log = logging.getLogger("maxfs.orchestrator")
 #: Futures of a job waited on at once (all are submitted; see run_job).
@@ -56,47 +56,30 @@ async def run_job(
     cancel flag (server shutdown), the record keeps its active state so the next
     start resumes it.
     """
-    job_dir = Path(job_dir)
-    store = JobStore.open(job_dir)
-    rec = load_record(job_dir)
-    report = on_progress or (lambda r: None)
-
-    def save() -> None:
-        save_record(job_dir, rec)
-        report(rec)
-
-    store.clear_cancel()
-    rec.state, rec.error, rec.finished_at = JobState.QUEUED, None, None
-    save()
+    run = JobRun(job_dir, on_progress, progress_interval)
+    rec, store = run.rec, run.store
+    run.queue()
     log.info("job %s of %s queued: checking that a worker sees its store", rec.id, user or "-")
     futures: dict[str, object] = {}
     held = 0  # ranks of this job's tiles in its user's backlog (service.runs.fairness), not yet released
     try:
         # a worker must see this very store (a shared filesystem) before any task reads it
-        await check_store_visible(client, job_dir, rec.id)
-        params = store.params
-        if params.eps is None:
+        await check_store_visible(client, run.job_dir, rec.id)
+        if run.needs_eps:
             key = f"maxfs-eps-{rec.id}-{uuid.uuid4().hex[:8]}"
             try:
                 eps = await result(
-                    client.submit(estimate_store_eps, str(job_dir), key=key, pure=False, retries=retries)
+                    client.submit(estimate_store_eps, str(run.job_dir), key=key, pure=False, retries=retries)
                 )
             except Exception as e:
                 raise RuntimeError(f"estimating eps and the response failed: {type(e).__name__}: {e}") from e
-            params = resolve_eps(store, eps)
-        rec.eps = params.eps
+            run.use_eps(eps)
         # many small reads (one per tile): in a thread, so the server keeps answering meanwhile
-        done = (await asyncio.to_thread(store.done_grid)).ravel()
-        await asyncio.to_thread(count_finished, rec, store)
-        rec.state, rec.started_at, rec.pixel_rate = JobState.RUNNING, time.time(), None
-        save()
-        log.info("job %s running: %d of %d tiles to do", rec.id, int((~done).sum()), done.size)
-        digest, nonce = params.digest(), uuid.uuid4().hex[:8]
+        todo = [t.index for t in await asyncio.to_thread(run.prepare)]
+        run.running()
+        log.info("job %s running: %d of %d tiles to do", rec.id, len(todo), rec.tiles_total)
+        digest, nonce = store.params.digest(), uuid.uuid4().hex[:8]
         index_of: dict[str, int] = {}
-        # largest masked-pixel count first: work, not tile count, is what the workers share
-        grid = store.tiles()
-        unfinished = [grid[int(i)] for i in (~done).nonzero()[0]]
-        todo = [t.index for t in await asyncio.to_thread(store.by_masked_pixels, unfinished)]
         # in batches (one message each), yielding to the event loop between them; each batch's
         # priority is minus its rank in the user's backlog, so users share the workers
         for b in range(0, len(todo), FAIR_BATCH):
@@ -107,7 +90,7 @@ async def run_job(
             n = len(batch)
             futs = client.map(
                 run_tile,
-                [str(job_dir)] * n,
+                [str(run.job_dir)] * n,
                 batch,
                 [digest] * n,
                 [tile_time_limit] * n,
@@ -120,8 +103,6 @@ async def run_job(
                 futures[key] = fut
                 index_of[key] = i
             await asyncio.sleep(0)
-        counter, last = RunCounter(rec), 0.0
-        cancelled = False
         # wait on a window of futures at a time (in submission order, topped up as they finish):
         # as_completed on thousands at once runs thousands of callbacks in one loop turn
         queue = list(futures.values())
@@ -151,41 +132,19 @@ async def run_job(
                 if fair is not None and held:
                     fair.release(user)
                     held -= 1
-            if out.status is TileStatus.OVERTIME:
-                raise RuntimeError(
-                    f"tile {out.index} was stopped after {tile_time_limit:g} s (MAXFS_TILE_TIME_LIMIT); "
-                    "finished tiles are kept: use a smaller tile, or lower max_nodes or "
-                    "milp_time_limit, then start the job again"
-                )
-            if out.status is TileStatus.CANCELLED:
-                cancelled = True
-                continue
-            if out.status is TileStatus.DONE:
-                counter.add(out)
-            now = time.monotonic()
-            if now - last >= progress_interval:
-                save()
-                last = now
-        if cancelled or store.cancel_requested:
-            raise JobCancelledError("cancelled by request")
-        if not (await asyncio.to_thread(store.done_grid)).all():
-            raise RuntimeError(
-                "some tiles finished without their done marker; start the job again to finish it"
-            )
-        await asyncio.to_thread(count_finished, rec, store)
+            run.record(out, tile_time_limit)
+        await asyncio.to_thread(run.check_complete)
         if finish is not None:
             try:
-                await asyncio.to_thread(finish, job_dir)
+                await asyncio.to_thread(finish, run.job_dir)
             except Exception:
                 log.exception("job %s: previews or depth failed; the results stand", rec.id)
-        rec.state, rec.finished_at = JobState.DONE, time.time()
-        save()
+        run.done()
         log.info("job %s done", rec.id)
         return rec
     except JobCancelledError:
         await _drop(client, futures)
-        rec.state, rec.finished_at = JobState.CANCELLED, time.time()
-        save()
+        run.cancelled()
         log.info("job %s cancelled", rec.id)
         return rec
     except asyncio.CancelledError:
@@ -195,20 +154,17 @@ async def run_job(
             # nobody stopped this run: a library raised CancelledError (e.g. a shared result fetch
             # cancelled by another waiter); ending quietly would leave the job active with nothing
             # running it
-            rec.state, rec.finished_at = JobState.FAILED, time.time()
-            rec.error = "internal error: a Dask result fetch was cancelled; start the job again to resume it"
-            save()
+            run.fail("internal error: a Dask result fetch was cancelled; start the job again to resume it")
             log.error("job %s: %s", rec.id, rec.error)
             return rec
         if store.cancel_requested:
             rec.state, rec.finished_at = JobState.CANCELLED, time.time()
-        save()  # without a cancel flag: shutdown; the active state makes the next start resume
+        run.save()  # without a cancel flag: shutdown; the active state makes the next start resume
         log.info("job %s: its run was stopped (%s)", rec.id, rec.state.value)
         raise
     except Exception as e:
         await _drop(client, futures)
-        rec.state, rec.error, rec.finished_at = JobState.FAILED, str(e), time.time()
-        save()
+        run.fail(e)
         log.warning("job %s failed: %s", rec.id, e)
         return rec
     finally:
