@@ -143,7 +143,7 @@ def solve_folder(
     workers
         Threads (default ``MAXFS_WORKERS``).
     overwrite
-        Replace an ``output`` that holds other inputs.
+        Replace an ``output`` that holds other inputs or other parameters (otherwise refused).
     **options
         Solve options by the CLI's names (``eps``, ``solver``, ``model``, ``tile``, ...;
         ``maxfs run -h`` lists them); unset ones take the CLI's defaults.

@@ -22,7 +22,16 @@ import numpy as np
 import tifffile
 from numpy.typing import NDArray
 
-from maxfs.storage.datasets import Dataset, _existing, _lights, _mask_from, _probe, _read_matrix, read_image
+from maxfs.storage.datasets import (
+    Dataset,
+    _existing,
+    _lights,
+    _mask_from,
+    _probe,
+    _read_matrix,
+    labels,
+    read_image,
+)
 from maxfs.storage.errors import DatasetError, InvalidInputError
 from maxfs.storage.imageio import load_npy
 from maxfs.storage.options import (
@@ -148,6 +157,7 @@ def plain_folder(folder: Path) -> Dataset:
         intensities=inten,
         mask=mask,
         files=_existing([*paths, *used], folder, "mask.png"),
+        image_labels=labels(paths),
     )
 
 
@@ -195,6 +205,7 @@ def select_images(ds: Dataset, indices: list[int]) -> Dataset:
         mask=ds.mask,
         _reader=lambda i: reader(idx[i]),
         files=(),  # no file fingerprint: the same files with another choice are other inputs
+        image_labels=tuple(ds.label(j) for j in idx),  # as numbered in the folder
     )
 
 

@@ -122,10 +122,15 @@ class Evaluation:
 
     def summary(self) -> str:
         under = ", ".join(f"<{k} deg {v:.1%}" for k, v in self.under.items())
-        miss = f", {self.missing} without a normal" if self.missing else ""
+        # the mean is over solved pixels only: a run that leaves more unsolved looks better by it
+        unsolved = (
+            f" ({self.missing / self.pixels:.1%} unsolved, not in the mean)"
+            if self.missing and self.pixels
+            else ""
+        )
         return (
-            f"angular error over {self.evaluated} of {self.pixels} ground-truth pixels{miss}: "
-            f"mean {self.mean_deg:.3f} deg, median {self.median_deg:.3f} deg; {under}"
+            f"angular error over {self.evaluated} of {self.pixels} ground-truth pixels: "
+            f"mean {self.mean_deg:.3f} deg{unsolved}, median {self.median_deg:.3f} deg; {under}"
         )
 
 

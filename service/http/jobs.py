@@ -182,7 +182,9 @@ class JobManager:
         """Refuse (507) what would eat into the disk reserve (see :class:`service.http.quotas.JobLimits`)."""
         self.limits.check_disk(nbytes, what)
 
-    def create(self, spec: JobSpec, params: JobParams, user: User, label: str | None = None) -> JobRecord:
+    def create(
+        self, spec: JobSpec, params: JobParams, user: User, label: str | None = None, name: str | None = None
+    ) -> JobRecord:
         spec = spec.validate()
         self.limits.check_limits(spec, user)
         self.limits.check_tiles(spec, params)
@@ -190,7 +192,7 @@ class JobManager:
         d = self.root / job_id
         try:
             JobStore.create(d, spec, params)
-            rec = JobRecord(id=job_id, owner=user.name, owner_uid=user.uid, label=label)
+            rec = JobRecord(id=job_id, owner=user.name, owner_uid=user.uid, label=label, name=name)
             save_record(d, rec)  # last: a folder without a record is an orphan
         except BaseException:
             shutil.rmtree(d, ignore_errors=True)

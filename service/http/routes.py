@@ -28,7 +28,17 @@ from maxfs.storage.errors import ConflictError, NotFoundError, PayloadTooLargeEr
 from maxfs.storage.layout import JobSpec, JobStore
 from maxfs.storage.records import JobState
 from maxfs.storage.requests import job_params
-from maxfs.storage.tokens import TokenStore
+from maxfs.storage.tokens import TokenStore, User
+
+#: The header of ``GET /jobs`` that says whose jobs these are.
+USER_HEADER = "X-Maxfs-User"
+
+
+def signed_in_as(user: User, auth: bool) -> str:
+    """'alice', 'root (admin)', or what a server without auth says: everyone is the local user."""
+    if not auth:
+        return "no sign-in (auth is off)"
+    return user.name + (" (admin)" if user.admin else "")
 
 
 class JobRoutes:
@@ -162,7 +172,7 @@ class JobRoutes:
         ).validate()
         self.m.limits.check_size(spec)  # before the automatic tile is computed from the size
         params = job_params(spec, solve_options(req), self.s.task_memory)
-        rec = self.m.create(spec, params, user_of(request), label=req.label)
+        rec = self.m.create(spec, params, user_of(request), label=req.label, name=req.name)
         body = self._body(request, rec.id)
         return JSONResponse(body, status_code=201, headers={"Location": body["links"]["self"]})
 
@@ -170,10 +180,13 @@ class JobRoutes:
         self,
         request: Request,
         mine: Annotated[bool, Query(description="only the caller's own jobs (for an admin too)")] = False,
-    ) -> list[dict[str, Any]]:
-        """The caller's jobs (an admin's: everyone's, unless ``mine=true``), oldest first."""
+    ) -> JSONResponse:
+        """The caller's jobs (an admin's: everyone's, unless ``mine=true``), oldest first.
+        ``X-Maxfs-User`` names who the token belongs to (the job page says who is signed in)."""
         base = str(request.base_url).rstrip("/")
-        return [status_body(r, base) for r in self.m.list_jobs(user_of(request), everyone=not mine)]
+        user = user_of(request)
+        body = [status_body(r, base) for r in self.m.list_jobs(user, everyone=not mine)]
+        return JSONResponse(body, headers={USER_HEADER: signed_in_as(user, self.s.auth)})
 
     async def status(self, job_id: str, request: Request) -> dict[str, Any]:
         """State, progress (tiles, pixels/s, ETA, certified share) and error reason of a job."""
