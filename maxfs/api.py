@@ -144,7 +144,7 @@ def solve_folder(
     workers
         Threads (default ``MAXFS_WORKERS``).
     overwrite
-        Replace an ``output`` that holds other inputs.
+        Replace an ``output`` that holds other inputs or other parameters (otherwise refused).
     **options
         Solve options by the CLI's names (``eps``, ``solver``, ``model``, ``tile``, ``depth``, ``fx``,
         ...; ``maxfs run -h`` lists them); unset ones take the CLI's defaults. A ``K.txt`` in the folder

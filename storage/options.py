@@ -20,6 +20,10 @@ from maxfs.storage.errors import InvalidInputError
 #: 10 admits albedos up to ten times the brightest observation (``L.N >= 0.1``).
 DEFAULT_BOX_FACTOR = 10.0
 #: Pixel types of stored images (and of every loader and upload).
+#: Most pixels per image (H x W) anywhere: the server's default ``MAXFS_MAX_PIXELS`` and the
+#: local readers' limit (:mod:`storage.imageio`): a file declaring more is refused from its
+#: header, before decoding.
+MAX_PIXELS = 64_000_000
 DTYPES = ("uint8", "uint16", "float32")
 #: What every entry point (CLI, HTTP, ``worker.solve.solve()``, ``maxfs demo``) does with no options.
 DEFAULT_EPS = "auto"

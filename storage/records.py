@@ -112,18 +112,25 @@ class JobRecord:
     eps: float | None = None
     owner_uid: str = ""  # the owner's token identity (storage.tokens): a re-created name is someone else
     label: str | None = None  # the client's name for the submission (maxfs submit resumes by it)
+    name: str | None = None  # what people call the job: the dataset folder's name unless given
     uploaded_images: list[int] = field(default_factory=list)  # indices of the images stored, before start
 
     @property
     def solved_share(self) -> float | None:
-        """Share of the finished masked pixels that got a normal."""
-        return self.solved_pixels / self.pixels_done if self.pixels_done else None
+        """Share of all masked pixels that got a normal: pixels of unfinished tiles (a cancelled
+        or failed job) count as not solved, so a job stopped early never reads as complete."""
+        return self.solved_pixels / self.pixels_total if self.pixels_done else None
 
     @property
     def certified_share(self) -> float | None:
-        """Share of the finished masked pixels with a normal whose optimum was proved
-        (never for ``l2``, which proves nothing)."""
-        return self.certified_pixels / self.pixels_done if self.pixels_done else None
+        """Share of all masked pixels with a normal whose optimum was proved (never for ``l2``,
+        which proves nothing); unfinished pixels count as not certified."""
+        return self.certified_pixels / self.pixels_total if self.pixels_done else None
+
+    @property
+    def unfinished_pixels(self) -> int:
+        """Masked pixels in tiles not computed (yet)."""
+        return max(self.pixels_total - self.pixels_done, 0)
 
     @property
     def eta_seconds(self) -> float | None:
@@ -135,7 +142,8 @@ class JobRecord:
     def warnings(self) -> list[str]:
         """What a user must hear about a result that is technically complete."""
         out = []
-        share = self.solved_share
+        # of the finished pixels: unfinished ones are not a sign of a bad result
+        share = self.solved_pixels / self.pixels_done if self.pixels_done else None
         if share is not None and share < LOW_SOLVED_SHARE:
             out.append(
                 f"only {share:.1%} of the {self.pixels_done} masked pixels got a normal: most pixels have "

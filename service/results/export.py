@@ -1,13 +1,18 @@
 """``maxfs export``: a job's results as files other tools open (PNG, NPY, float TIFF, PLY and OBJ meshes).
 
-Written to one folder (default ``OUT-export/`` beside ``OUT.zarr``):
+Written to one folder (default ``STORE-export/`` beside the result folder STORE); docs/outputs.md
+says how to read each file:
 
 ============================ ==========================================================================
 ``normal.npy``               (H, W, 3) float32 unit normals, NaN where unsolved (x right, y up, z to camera)
-``normal.png``               16-bit RGB, ``65535 * (n + 1) / 2`` in all three channels, 0 where unsolved
+``normal.png``               8-bit RGB, ``255 * (n + 1) / 2`` in all three channels, 0 where unsolved: what
+                             every viewer and ``PIL.Image.open`` read as it is
+``normal16.png``             16-bit RGB, ``65535 * (n + 1) / 2``, for precision: read it with
+                             ``imageio``/``tifffile``/``cv2.IMREAD_UNCHANGED`` (Pillow cuts it to 8 bits)
 ``normal.tiff``              (H, W, 3) float32, as the NPY
-``albedo.npy``               (H, W) or (H, W, 3) float32 (``albedo_rgb`` for colour input), 0 where unsolved
-``albedo.png``               16-bit, linear, ``65535`` at the 99.5th percentile (``scale`` in export.json)
+``albedo.npy``               (H, W) float32 grey albedo, the store's ``albedo``; 0 where unsolved
+``albedo.png``               16-bit grey, linear, 65535 at the 99.5th percentile (``scale`` in export.json)
+``albedo_rgb.npy/.png``      colour input only: (H, W, 3) float32, the store's ``albedo_rgb``; PNG 16-bit RGB
 ``inlier_count.npy/.png``    (H, W) uint16: the number of images used per pixel
 ``depth.npy`` / ``.tiff``    (H, W) float32 z toward the camera (orthographic: pixels), NaN outside
 ``depth.png``                16-bit, ``0 .. 65535`` over ``[min, max]`` of the depth (export.json), 0 outside
@@ -28,6 +33,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
+from maxfs.service.results.previews import normal_rgb
 from maxfs.storage.errors import InvalidInputError
 from maxfs.storage.imageio import encode_png
 from maxfs.storage.layout import JobStore
@@ -164,18 +170,30 @@ def export(
     if "normal" in items:
         np.save(out / "normal.npy", normal)
         put("normal.npy", dtype="float32", shape=list(normal.shape))
-        put("normal.png", encode_png(normal_png16(normal)), encoding="65535 * (n + 1) / 2, 0 = no normal")
+        put(
+            "normal.png",
+            encode_png(normal_rgb(normal)),
+            encoding="8-bit RGB, 255 * (n + 1) / 2, 0 = no normal",
+        )
+        put(
+            "normal16.png",
+            encode_png(normal_png16(normal)),
+            encoding="16-bit RGB, 65535 * (n + 1) / 2, 0 = no normal (Pillow reads only 8 bits of it)",
+        )
         tifffile.imwrite(out / "normal.tiff", normal, photometric="rgb")
         put("normal.tiff", dtype="float32")
-    albedo = store.read_output("albedo_rgb") if "albedo_rgb" in store.output_names() else None
-    if albedo is None:
-        albedo = store.read_output("albedo")
+    grey = store.read_output("albedo")
+    rgb = store.read_output("albedo_rgb") if "albedo_rgb" in store.output_names() else None
+    albedo = grey if rgb is None else rgb  # the mesh's colour
     pos = albedo[np.isfinite(albedo) & (albedo > 0)]
     albedo_top = float(np.percentile(pos, 99.5)) if pos.size else 1.0
-    if "albedo" in items:
-        np.save(out / "albedo.npy", albedo)
-        put("albedo.npy", dtype="float32", shape=list(albedo.shape))
-        put("albedo.png", encode_png(_scaled16(albedo, 0.0, albedo_top)), scale=f"65535 = {albedo_top:.6g}")
+    if "albedo" in items:  # named as in the store: albedo is grey, albedo_rgb per channel
+        for name, a in (("albedo", grey), ("albedo_rgb", rgb)):
+            if a is None:
+                continue
+            np.save(out / f"{name}.npy", a)
+            put(f"{name}.npy", dtype="float32", shape=list(a.shape))
+            put(f"{name}.png", encode_png(_scaled16(a, 0.0, albedo_top)), scale=f"65535 = {albedo_top:.6g}")
     if "inlier_count" in items:
         count = store.read_output("inlier_count")
         np.save(out / "inlier_count.npy", count)

@@ -8,6 +8,7 @@ non-Zarr files (record, run log, previews).
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -19,8 +20,18 @@ from maxfs.storage.options import DepthMethod
 from maxfs.worker.depth import Camera, DepthResult, integrate, relief_rgb
 from maxfs.worker.evaluate import Evaluation, error_map_rgb, evaluate, load_ground_truth
 
-EVAL_JSON = "maxfs-eval.json"
-ERROR_MAP = "angular_error.png"
+EVAL_JSON = "maxfs-eval-{gt}.json"
+ERROR_MAP = "angular_error-{gt}.png"
+
+
+def gt_name(gt_path: Path | str) -> str:
+    """The ground truth's name in the files its evaluation writes: its folder and file name
+    ("catPNG-Normal_gt"), so a second ground truth never overwrites the first one's numbers."""
+    p = Path(gt_path).absolute()
+    name = f"{p.parent.name}-{p.stem}" if p.parent.name else p.stem
+    return re.sub(r"[^A-Za-z0-9._-]+", "_", name)
+
+
 DEPTH_PREVIEW = "depth.png"
 
 
@@ -34,17 +45,24 @@ def evaluate_store(
 ) -> tuple[Evaluation, Path, Path]:
     """Evaluate a job store's normals against a ground-truth normal map.
 
-    Writes the error map PNG (default ``previews/angular_error.png``) and the statistics as JSON (default
-    ``maxfs-eval.json`` in the job folder); returns the statistics and both paths.
+    Writes the error map PNG (default ``previews/angular_error-GT.png``) and the statistics as JSON
+    (default ``maxfs-eval-GT.json`` in the job folder, GT: :func:`gt_name`); returns the statistics
+    and both paths.
     """
     store = JobStore.open(Path(path), mode="r")
     gt = load_ground_truth(gt_path)
     ev, err = evaluate(store.read_output("normal"), gt)
-    map_path = Path(map_path) if map_path else store.path / "previews" / ERROR_MAP
+    name = gt_name(gt_path)
+    map_path = Path(map_path) if map_path else store.path / "previews" / ERROR_MAP.format(gt=name)
     map_path.parent.mkdir(parents=True, exist_ok=True)
     map_path.write_bytes(encode_png(error_map_rgb(err, max_deg=max_deg, gt_mask=gt.mask)))
-    json_path = Path(json_path) if json_path else store.path / EVAL_JSON
-    doc = ev.to_json() | {"store": str(store.path), "error_map": str(map_path), "max_deg": max_deg}
+    json_path = Path(json_path) if json_path else store.path / EVAL_JSON.format(gt=name)
+    doc = ev.to_json() | {
+        "store": str(store.path),
+        "ground_truth": str(Path(gt_path).absolute()),
+        "error_map": str(map_path),
+        "max_deg": max_deg,
+    }
     done = store.done_grid()
     doc["tiles_done"], doc["tiles_total"] = int(done.sum()), int(done.size)
     json_path.write_text(json.dumps(doc, indent=1) + "\n")

@@ -64,12 +64,20 @@ async def run_job(
     held = 0  # ranks of this job's tiles in its user's backlog (service.runs.fairness), not yet released
     try:
         # a worker must see this very store (a shared filesystem) before any task reads it
-        await check_store_visible(client, run.job_dir, rec.id)
+        prep = fair.prep_priority(user) if fair is not None else 0
+        await check_store_visible(client, run.job_dir, rec.id, priority=prep)
         if run.needs_eps:
             key = f"maxfs-eps-{rec.id}-{uuid.uuid4().hex[:8]}"
             try:
                 eps = await result(
-                    client.submit(estimate_store_eps, str(run.job_dir), key=key, pure=False, retries=retries)
+                    client.submit(
+                        estimate_store_eps,
+                        str(run.job_dir),
+                        key=key,
+                        pure=False,
+                        retries=retries,
+                        priority=prep,
+                    )
                 )
             except Exception as e:
                 raise RuntimeError(f"estimating eps and the response failed: {type(e).__name__}: {e}") from e
@@ -81,7 +89,7 @@ async def run_job(
         digest, nonce = store.params.digest(), uuid.uuid4().hex[:8]
         index_of: dict[str, int] = {}
         # in batches (one message each), yielding to the event loop between them; each batch's
-        # priority is minus its rank in the user's backlog, so users share the workers
+        # priority is minus its last tile's rank in the user's backlog, so users share the workers
         for b in range(0, len(todo), FAIR_BATCH):
             batch = todo[b : b + FAIR_BATCH]
             keys = [f"maxfs-tile-{rec.id}-{i}-{nonce}" for i in batch]
@@ -97,7 +105,7 @@ async def run_job(
                 key=keys,
                 pure=False,
                 retries=retries,
-                priority=-rank,
+                priority=FairShare.batch_priority(rank, n),
             )
             for key, fut, i in zip(keys, futs, batch, strict=True):
                 futures[key] = fut
