@@ -18,7 +18,7 @@ from pathlib import Path
 
 from maxfs.service import settings as settings_module
 from maxfs.service.settings import ENV_PREFIX, Settings
-from maxfs.storage.options import SOLVE_OPTIONS
+from maxfs.storage.options import INTRINSICS, SOLVE_OPTIONS
 from maxfs.storage.outputs import OUTPUT_TABLE
 
 MARK = re.compile(r"(<!-- generated: (\w+) -->\n)(.*?)(<!-- end generated -->)", re.S)
@@ -67,7 +67,14 @@ def options_table() -> str:
     rows = ["| option (CLI flag, HTTP field) | kind | default | what |", "|---|---|---|---|"]
     for o in SOLVE_OPTIONS:
         kind = " / ".join(o.choices) if o.choices else o.kind
-        default = "the model's" if o.default is None else str(o.default)
+        unset = (
+            "none (orthographic)"
+            if o.name in INTRINSICS
+            else "none"
+            if o.name == "distance"
+            else "the model's"
+        )
+        default = unset if o.default is None else str(o.default)
         rows.append(f"| `{o.flag}`, `{o.name}` | {kind} | {default} | {o.help.replace('|', '/')} |")
     return "\n".join(rows) + "\n"
 

@@ -15,7 +15,8 @@ from maxfs.service.cli.common import EXIT_NOT_DONE, EXIT_SERVER, EXIT_STATUSES, 
 from maxfs.service.cli.common import make_client as _client
 from maxfs.service.settings import LOOPBACK, Settings, cluster_settings, runs_in_process
 from maxfs.storage.errors import ConflictError, InvalidInputError, MaxfsError
-from maxfs.storage.options import SOLVE_OPTIONS
+from maxfs.storage.options import INTRINSICS, SOLVE_OPTIONS
+from maxfs.storage.params import DEPTH_FIELDS
 from maxfs.storage.records import JobState
 from maxfs.storage.tokens import TokenStore
 
@@ -105,8 +106,23 @@ def _server_args(p: argparse.ArgumentParser) -> None:
 
 
 def _params(args: argparse.Namespace) -> dict[str, Any]:
-    """The solve options given (or defaulted) on the command line, by name."""
-    return {o.name: v for o in SOLVE_OPTIONS if (v := getattr(args, o.name, None)) is not None}
+    """The solve options given (or defaulted) on the command line, by name; the camera from the
+    dataset folder's ``K.txt`` when it has one and no intrinsics are given."""
+    from maxfs.service.results.research import folder_camera
+
+    kw = {o.name: v for o in SOLVE_OPTIONS if (v := getattr(args, o.name, None)) is not None}
+    if getattr(args, "folder", None) and not any(n in kw for n in INTRINSICS):
+        kw |= folder_camera(args.folder)
+    return kw
+
+
+def _depth_args(p: argparse.ArgumentParser) -> None:
+    """The depth rows of :data:`storage.options.SOLVE_OPTIONS` as flags that default to the job's."""
+    for o in SOLVE_OPTIONS:
+        if o.name in DEPTH_FIELDS:
+            kw: dict[str, Any] = {"default": None, "help": o.help + " (default: as the job asked)"}
+            kw |= {"choices": list(o.choices)} if o.kind == "choice" else {"type": float}
+            p.add_argument(o.flag, **kw)
 
 
 def _progress() -> Any:
@@ -225,7 +241,15 @@ def cmd_export(args: argparse.Namespace) -> int:
     items = tuple(args.only.split(",")) if args.only else ITEMS
     if args.no_mesh:
         items = tuple(i for i in items if i != "mesh")
-    m = export(args.store, args.output, items=items, mesh_formats=tuple(args.mesh_format.split(",")))
+    depth = {n: v for n in DEPTH_FIELDS if (v := getattr(args, n)) is not None}
+    m = export(
+        args.store,
+        args.output,
+        items=items,
+        mesh_formats=tuple(args.mesh_format.split(",")),
+        jump=args.jump,
+        depth_options=depth,
+    )
     if m["tiles_done"] < m["tiles_total"]:
         print(
             f"maxfs: WARNING: {m['tiles_total'] - m['tiles_done']} of {m['tiles_total']} tiles are not "
@@ -545,6 +569,13 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--only", default=None, help="comma list of normal,albedo,inlier_count,depth,mesh")
     p.add_argument("--no-mesh", action="store_true", help="skip the mesh")
     p.add_argument("--mesh-format", default="ply,obj", help="ply, obj or ply,obj (default)")
+    p.add_argument(
+        "--jump",
+        type=float,
+        default=2.0,
+        help="the mesh is not joined where depth is off its normals by more than this many pixels (2)",
+    )
+    _depth_args(p)
     p.set_defaults(fn=cmd_export)
     p = sub.add_parser("demo", help="make a synthetic dataset and run it")
     p.add_argument("-o", "--output", default="maxfs-demo")
