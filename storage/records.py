@@ -106,6 +106,7 @@ class JobRecord:
     tiles_done: int = 0
     pixels_total: int = 0  # pixels inside the mask
     pixels_done: int = 0  # ... in finished tiles
+    pixels_running: int = 0  # ... solved so far in tiles still running (progress inside a tile)
     certified_pixels: int = 0  # ... that got a normal whose optimum was proved
     solved_pixels: int = 0  # ... that got a normal
     pixel_rate: float | None = None  # pixels per second in this run
@@ -137,7 +138,7 @@ class JobRecord:
         """Seconds left at this run's pixel rate (active jobs only)."""
         if not (self.pixel_rate and self.state.active):
             return None
-        return max(self.pixels_total - self.pixels_done, 0) / self.pixel_rate
+        return max(self.pixels_total - self.pixels_done - self.pixels_running, 0) / self.pixel_rate
 
     def warnings(self) -> list[str]:
         """What a user must hear about a result that is technically complete."""

@@ -25,6 +25,8 @@ from maxfs.worker.cancel import TileCancelled, cancel_points
 from maxfs.worker.problem import make_thresholds
 from maxfs.worker.solve import estimate_job, solve_tile
 
+#: Seconds between two progress notes of a running tile (its solved pixels so far).
+PROGRESS_SECONDS = 1.0
 
 class TileStatus(StrEnum):
     """How a tile task ended."""
@@ -104,7 +106,12 @@ def compute_tile(
         return None
 
     try:
-        with cancel_points(stop_reason):
+        active = int(mask.sum())
+
+        def report(done: int, total: int) -> None:
+            store.note_tile_progress(tile_index, active * done // total)
+
+        with cancel_points(stop_reason, report=report, report_interval=PROGRESS_SECONDS):
             res = solve_tile(
                 raw,
                 spec.lights,
@@ -116,11 +123,13 @@ def compute_tile(
                 milp_time_limit=params.milp_time_limit,
             )
     except TileCancelled as e:
+        store.clear_tile_progress(tile_index)
         store.log_run(tile_index, str(e))
         return TileOutcome(tile_index, TileStatus(str(e)), pixels=mask.size)
     solved = np.isfinite(res.normal[..., 0]) & mask
     stats = (int(mask.sum()), int(solved.sum()), int((res.optimal & solved).sum()))
     store.write_tile(t, res.outputs(), token, stats)
+    store.clear_tile_progress(tile_index)
     store.log_run(tile_index, "done")
     return TileOutcome(
         tile_index,

@@ -212,7 +212,7 @@ function renderDetail() {
   const stats = [
     ["Owner", job.owner],
     ["Tiles", tiles(p)],
-    ["Pixels", `${p.pixels_done} / ${p.pixels_total}`],
+    ["Pixels solved", `${p.pixels_done + (p.pixels_running || 0)} / ${p.pixels_total}`],
     ["Pixels/s", rate(p.pixels_per_second)],
     ["ETA", job.state === "running" || job.state === "queued" ? hms(p.eta_seconds) : "–"],
     ["Solved", pct(p.solved_share)],
