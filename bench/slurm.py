@@ -76,10 +76,7 @@ def main() -> None:
     base = Settings(
         slurm_interface="lo", slurm_memory="1GiB", slurm_walltime="00:30:00", slurm_idle_timeout=600
     )
-    configs = [
-        ("embedded LocalCluster", n, base.replace(cluster="local", workers=n))
-        for n in (1, 2)
-    ] + [
+    configs = [("embedded LocalCluster", n, base.replace(cluster="local", workers=n)) for n in (1, 2)] + [
         (
             "SLURM worker jobs",
             n,

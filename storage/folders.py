@@ -30,9 +30,11 @@ from maxfs.storage.datasets import (
     _probe,
     _read_matrix,
     folder_notes,
+    labels,
     read_image,
 )
 from maxfs.storage.errors import DatasetError, InvalidInputError
+from maxfs.storage.imageio import load_npy
 from maxfs.storage.options import (
     DTYPES,
     WARN_LIGHT_CONDITION,
@@ -68,7 +70,7 @@ def _read_lights(folder: Path, k: int) -> tuple[NDArray[np.float64], NDArray[np.
     lf = lights_file(folder)
     if lf is None:
         raise DatasetError(f"{folder}: no lights file; add light_directions.txt (k lines of x y z)")
-    raw = np.load(lf).astype(np.float64) if lf.suffix == ".npy" else _read_matrix(lf, 3, "light directions")
+    raw = load_npy(lf).astype(np.float64) if lf.suffix == ".npy" else _read_matrix(lf, 3, "light directions")
     lights = _lights(raw, k, lf)
     inten, used = None, [lf]
     for n in INTENSITY_FILES:
@@ -159,6 +161,7 @@ def plain_folder(folder: Path) -> Dataset:
         mask=mask,
         files=_existing([*paths, *used], folder, "mask.png"),
         notes=folder_notes(folder, TEXT_FILES),
+        image_labels=labels(paths),
     )
 
 
@@ -207,6 +210,7 @@ def select_images(ds: Dataset, indices: list[int]) -> Dataset:
         _reader=lambda i: reader(idx[i]),
         files=(),  # no file fingerprint: the same files with another choice are other inputs
         notes=ds.notes,
+        image_labels=tuple(ds.label(j) for j in idx),  # as numbered in the folder
     )
 
 

@@ -119,7 +119,9 @@ def test_folder_notes_name_missing_and_unknown_text_files(tmp_path: Path) -> Non
 
 
 def test_record_and_cli_summary_say_calibration_suspect() -> None:
-    rec = JobRecord(id="x", state=JobState.DONE, pixels_done=10, solved_pixels=10, certified_pixels=10)
+    rec = JobRecord(
+        id="x", state=JobState.DONE, pixels_total=10, pixels_done=10, solved_pixels=10, certified_pixels=10
+    )
     assert not any("calibration" in w for w in rec.warnings()) and "suspect" not in cli.shares(rec)
     rec.calibration = ["light order: the lights explain the images hardly better than ..."]
     assert rec.warnings()[-1].startswith("calibration suspect: light order:")

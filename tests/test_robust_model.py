@@ -59,7 +59,9 @@ def test_exact_matches_milp_for_every_tolerance_model(k, response, eps_rel, drop
     tol = REL_TOL * np.where(V, hi, 0).max(axis=1, keepdims=True)
     np.testing.assert_array_equal(inl, V & (v >= lo - tol) & (v <= hi + tol))
     assert (cnt < V.sum(axis=1)).sum() >= 3
-    width = np.where(V, hi - lo, np.nan)
+    one_sided = V & np.isinf(lo)  # shadows: L.n <= hi, counted where they hold
+    assert (one_sided & inl).sum() >= 5 and (one_sided & ~inl).any()
+    width = np.where(V & ~one_sided, hi - lo, np.nan)
     assert np.nanmax(width) > 1.5 * np.nanmin(width)
 
 
@@ -76,7 +78,8 @@ def test_slabs_of_the_robust_model() -> None:
 
 
 def test_brightest_candidates_are_dropped_but_three_stay() -> None:
-    th = make_thresholds(10, 1.0, model="robust", response=1.0, drop_bright=0.3)
+    # the paper's model: its shadows (<= eps) are no candidates, so the second row has 4
+    th = make_thresholds(10, 1.0, model="paper", drop_bright=0.3)
     I = np.array([[10, 20, 30, 40, 50, 60, 70, 80, 90, 100.0], [0, 0, 0, 0, 0, 0, 5, 6, 7, 8.0]])
     V = candidates(I, th)
     np.testing.assert_array_equal(V[0], I[0] <= 70)  # 3 of 10 dropped
@@ -167,7 +170,7 @@ def test_source_codes_and_rank_deficient_pixels() -> None:
 def test_params_resolve_both_estimates_and_keep_old_records() -> None:
     p = JobParams.build(eps=2.0, model="robust")
     assert p.eps is None and p.response is None and p.response_request == "auto"
-    assert p.drop_bright == 0.3 and p.dequantize and p.fallback
+    assert p.drop_bright == 0.0 and p.dequantize and p.fallback
     r = p.with_eps(Estimate(2.0, 1.3, 0.0))
     assert (r.eps, r.response) == (2.0, 1.3) and r.unresolved() == p
     fixed = JobParams.build(eps=2.0, model="robust", response=1.3)
@@ -178,3 +181,70 @@ def test_params_resolve_both_estimates_and_keep_old_records() -> None:
         JobParams.build(model="robust", drop_bright=1.5)
     with pytest.raises(ValueError, match="unknown model"):
         JobParams.build(model="fancy")
+
+
+def test_shadow_inliers_count_for_the_optimum_but_not_the_refit() -> None:
+    # lights behind the surface give zeros: one-sided slabs that hold at the true normal
+    L = synthetic.lights_uniform(12)
+    n = np.array([0.95, 0.0, 0.31]) * 100.0
+    I = np.maximum(L @ n, 0.0)[None].repeat(2, axis=0)
+    I[1, np.argmax(I[1])] += 60.0  # a highlight-like outlier on the second pixel
+    assert (I[0] == 0).sum() >= 2
+    th = make_thresholds(12, 1.0, model="robust", response=1.0)
+    r = solve_pixels(I, L, th, "exact")
+    dark = I <= th.shadow
+    assert r.optimal.all() and (r.inliers & dark).sum() == dark.sum()  # every shadow holds
+    np.testing.assert_array_equal(r.count, r.inliers.sum(axis=1))
+    # the normal is the least-squares fit of the lit inliers alone: shadows do not pull it to 0
+    lit = r.inliers & ~dark
+    for p in range(2):
+        want, *_ = np.linalg.lstsq(L[lit[p]], I[p, lit[p]], rcond=None)
+        np.testing.assert_allclose(r.normal[p] * r.albedo[p], want, rtol=1e-5, atol=1e-4)
+    paper = solve_pixels(I, L, make_thresholds(12, 1.0), "exact")
+    assert (paper.count < r.count).all()  # the paper's model never counts a shadow
+
+
+def test_near_mirror_rule_keeps_lambertian_and_few_image_pixels() -> None:
+    from maxfs.worker.outliers import MIN_KEPT, half_vectors, near_mirror
+
+    L = synthetic.lights_uniform(24)
+    N = np.array([0.0, 0.0, 1.0])
+    S = np.tile(L @ N * 100.0, (3, 1))
+    close = half_vectors(L) @ N > np.cos(np.radians(12.0))
+    assert 3 <= close.sum() <= 8
+    S[1, close] += 30.0  # a lobe around the mirror direction, inside the rule's 20 degrees
+    lit = np.ones_like(S, dtype=bool)
+    lit[2, 8:] = False  # 8 lit images: at most 2 may go
+    S[2, :8][close[:8]] += 30.0
+    out = near_mirror(S, lit, L, 20.0, 1.0)
+    assert not out[0].any()  # Lambertian: the near-mirror images fit, none is rejected
+    np.testing.assert_array_equal(out[1], close)
+    assert out[2].sum() <= 8 - MIN_KEPT and (out[2] <= close).all()
+    assert not near_mirror(S[:, :MIN_KEPT], lit[:, :MIN_KEPT], L[:MIN_KEPT], 20.0, 1.0).any()
+
+
+def test_response_is_kept_only_if_it_predicts_held_out_images_better() -> None:
+    from maxfs.worker.noise import validated_response
+
+    sc = synthetic.sphere(24, 32, specular=0.0, bits=None, noise=0.5, seed=2)
+    lin = np.maximum(sc.images[:, sc.mask].T, 0.0)
+    ok = lin > 1.0
+    assert validated_response(lin, ok, sc.lights, 1.6) == 1.0  # linear data: g = 1.6 predicts worse
+    curved = (lin / 200.0) ** 1.6 * 200.0
+    assert validated_response(curved, curved > 1.0, sc.lights, 1.6) == 1.6
+
+
+def test_solve_defaults_are_the_cli_and_http_defaults() -> None:
+    import inspect
+
+    from maxfs.storage.options import SOLVE_OPTIONS
+
+    sig = inspect.signature(solve).parameters
+    for opt in SOLVE_OPTIONS:
+        if opt.name in sig and opt.default is not None and opt.name != "tile":
+            assert str(sig[opt.name].default) == str(opt.default), opt.name
+    sc = synthetic.sphere(12, 16, noise=1.0)
+    a = solve(sc.images.astype(np.uint8), sc.lights, sc.mask)
+    b = solve(sc.images.astype(np.uint8), sc.lights, sc.mask, model="robust", eps="auto")
+    np.testing.assert_array_equal(a.normal, b.normal)
+    assert a.eps == b.eps

@@ -56,16 +56,31 @@ def test_degenerate_pixels_give_nan_normal_and_zero_albedo() -> None:
 
 def test_shadowed_and_saturated_images_are_never_inliers() -> None:
     sc = synthetic.bump_scene(24, 32)
-    sol = solve(sc.images, sc.lights, sc.mask, eps=1.0, saturation=255)
+    sol = solve(sc.images, sc.lights, sc.mask, eps=1.0, saturation=255, model="paper")
     assert not (sol.inliers & (sc.images <= 1.0)).any()
     assert not (sol.inliers & (sc.images >= 255)).any()
     # the cast-shadow scene really has both kinds of observation
     assert (sc.images[:, sc.mask] == 0).any() and (sc.images[:, sc.mask] >= 255).any()
 
 
+def test_robust_model_counts_attached_shadows_only_where_the_light_is_behind() -> None:
+    sc = synthetic.bump_scene(24, 32)
+    sol = solve(sc.images, sc.lights, sc.mask, eps=1.0, saturation=255, model="robust", response=1.0)
+    assert not (sol.inliers & (sc.images >= 255)).any()
+    rim = synthetic.sphere(24, 32)  # attached shadows near the silhouette
+    sol = solve(rim.images, rim.lights, rim.mask, eps=1.0, saturation=255, model="robust", response=1.0)
+    dark = sol.inliers & (rim.images <= sol.eps / 3)  # shadow inliers
+    true_ln = np.einsum("kd,hwd->khw", rim.lights, np.nan_to_num(rim.normals))
+    assert dark.sum() > 50 and (true_ln[dark] < 0.01).all()  # the light is really behind
+    cast = (sc.images == 0) & (np.einsum("kd,hwd->khw", sc.lights, np.nan_to_num(sc.normals)) > 0.2)
+    assert cast[:, sc.mask].sum() > 50  # cast shadows (the light is in front) ...
+    sol = solve(sc.images, sc.lights, sc.mask, eps=1.0, saturation=255, model="robust", response=1.0)
+    assert not (sol.inliers & cast).any()  # ... are never inliers
+
+
 def test_shadow_threshold_is_configurable() -> None:
     sc = synthetic.sphere(12, 24)
-    sol = solve(sc.images, sc.lights, sc.mask, eps=1.0, shadow=20.0, saturation=255)
+    sol = solve(sc.images, sc.lights, sc.mask, eps=1.0, shadow=20.0, saturation=255, model="paper")
     assert not (sol.inliers & (sc.images <= 20.0)).any()
     assert (sol.inliers & (sc.images > 20.0) & (sc.images < 30)).any()
 

@@ -64,6 +64,7 @@ def test_exact_matches_milp_optimum(case: Case) -> None:
     assert (cnt < V.sum(axis=1)).sum() >= 5
 
 
+@pytest.mark.slow
 def test_random_arrangements_match_milp() -> None:
     """Random lights over the whole upper hemisphere and random outliers."""
     rng = np.random.default_rng(7)
@@ -87,3 +88,35 @@ def test_random_arrangements_match_milp() -> None:
         assert cert.all() and mcert.all()
         np.testing.assert_array_equal(cnt, mcnt, err_msg=f"trial {trial}")
         _assert_feasible(I, V, L, eps, pt, inl, REL_TOL)
+
+
+def test_one_sided_shadow_slabs_match_milp() -> None:
+    """Shadows as one-sided slabs ``L.n <= hi`` (``lo = -inf``): random lights over the
+    hemisphere (many behind the surface), random outliers and dark cast shadows."""
+    rng = np.random.default_rng(11)
+    for trial in range(10):
+        k = int(rng.integers(6, 30))
+        L = rng.normal(size=(k, 3))
+        L[:, 2] = np.abs(L[:, 2]) + 0.1
+        L /= np.linalg.norm(L, axis=1, keepdims=True)
+        n_true = rng.normal(size=(25, 3)) * 60 + np.array([0, 0, 80])
+        I = np.maximum(n_true @ L.T, 0.0) + rng.normal(0, 0.7, size=(25, k))
+        out = rng.random((25, k)) < 0.25
+        I[out] = np.where(rng.random(out.sum()) < 0.5, 0.0, I[out] + rng.uniform(-60, 100, out.sum()))
+        I = np.clip(I, 0, None)
+        th = make_thresholds(k, float(rng.uniform(0.5, 3)), model="robust", response=1.0)
+        lo, hi = slabs(I, th)
+        V = np.isfinite(I)
+        assert np.isinf(lo).any() and np.isfinite(lo).any()
+        keep = (V & np.isfinite(lo)).sum(axis=1) >= 3
+        I, V, lo, hi = I[keep], V[keep], lo[keep], hi[keep]
+        pt, inl, cnt, _, cert = exact_pixels(I, lo, hi, V, L, 10.0, 10**7)
+        mpt, minl, mcnt, mcert, stats = MilpSolver(L, time_limit=60).solve_rows(I, V, (lo, hi), 10.0)
+        assert cert.all() and mcert.all()
+        np.testing.assert_array_equal(stats.claimed, mcnt)
+        np.testing.assert_array_equal(cnt, mcnt, err_msg=f"trial {trial}")
+        for p, il in ((pt, inl), (mpt, minl)):
+            v = p @ L.T
+            tol = 1e-6 * np.where(V, hi, 0).max(axis=1, keepdims=True)
+            assert ((v >= lo - tol) & (v <= hi + tol) | ~il).all()
+        assert (inl & np.isinf(lo)).sum() >= 5  # shadows really count

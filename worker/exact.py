@@ -1,7 +1,9 @@
 """Exact maximum feasible subsystem by branch and bound over boxes of n-space.
 
 The Max-FS problem at one pixel is the maximum depth of an arrangement of k slabs
-``lo_i <= L_i . n <= hi_i`` in 3-D, restricted to the box ``|n_j| <= U``.
+``lo_i <= L_i . n <= hi_i`` in 3-D, restricted to the box ``|n_j| <= U``. A slab with
+``lo_i = -inf`` is one-sided (a shadow: ``L_i . n <= hi_i``); inside the box it equals the
+slab whose lower face lies below the box, which is what the search uses.
 
 Each box in the search carries three numbers: ``f`` slabs contain it wholly,
 ``p`` slabs cross it (their indices are kept), the rest miss it. ``f + p`` bounds
@@ -591,7 +593,7 @@ def solve_exact(
     ----------
     I : (P, k) float64 intensities (least-squares seeds only);
     slab_lo, slab_hi : (P, k) float64 slab bounds ``lo <= L_i . n <= hi``, read
-    only where ``valid``; valid : (P, k) bool usable observations;
+    only where ``valid``; ``lo = -inf`` is the one-sided slab ``L_i . n <= hi`` (a shadow); valid : (P, k) bool usable observations;
     L : (k, 3) float64 unit lights; box_factor : float; max_nodes : int;
     above : (P,) int64, an earlier pixel of the batch whose solution seeds this
     one (the pixel above in the image), or -1.
@@ -623,6 +625,7 @@ def solve_exact(
     hi = np.zeros(k)
     margin = np.zeros(k)
     sel = np.zeros(k, np.bool_)
+    lit = np.zeros(k, np.bool_)  # two-sided slabs (finite lower bound)
     prev = start - 1  # the last solved pixel (at least 3 usable images) before start
     while prev >= 0:
         usable = 0
@@ -637,16 +640,19 @@ def solve_exact(
     for px in range(start, P if stop < 0 else stop):
         m = np.int64(0)
         maxb = 0.0
-        eps = 0.0  # the widest half-width: the scale of seed slack and of hmin
+        eps = 0.0  # the widest half-width of a two-sided slab: the scale of seed slack and of hmin
         for i in range(k):
             inl[px, i] = False
+            lit[i] = False
             if valid[px, i]:
                 a[i] = slab_lo[px, i]
                 b[i] = slab_hi[px, i]
                 idx[m] = i
                 m += 1
                 maxb = max(maxb, b[i])
-                eps = max(eps, 0.5 * (b[i] - a[i]))
+                if a[i] > -np.inf:
+                    lit[i] = True
+                    eps = max(eps, 0.5 * (b[i] - a[i]))
         count[px] = 0
         nodes[px] = 0
         certified[px] = True
@@ -657,8 +663,14 @@ def solve_exact(
         U = box_factor * maxb
         tol = REL_TOL * maxb
         sig = _SIGMA_REL * U
+        if eps == 0.0:  # only one-sided slabs: the scale of the data instead
+            eps = maxb
         for q in range(m):
             j = idx[q]
+            if not lit[j]:
+                # one-sided slab L.n <= b: a lower face below the whole box (L.n >= -U ||L||_1
+                # there) is the same set inside the box and keeps every test finite
+                a[j] = -U * (absL[j, 0] + absL[j, 1] + absL[j, 2]) - maxb
             lo[j] = a[j] - tol
             hi[j] = b[j] + tol
             margin[j] = 1e-3 * (b[j] - a[j])
@@ -672,12 +684,12 @@ def solve_exact(
                 continue
             best = _try_point(L, lo, hi, idx, m, U, point[src, 0], point[src, 1], point[src, 2], best, bp)
             for i in range(k):
-                sel[i] = inl[src, i] and valid[px, i]
+                sel[i] = inl[src, i] and lit[i]
             if _lsq(L, I[px], sel, k, tmp):
                 best = _try_point(L, lo, hi, idx, m, U, tmp[0], tmp[1], tmp[2], best, bp)
         if best < m:
             for i in range(k):
-                sel[i] = valid[px, i]
+                sel[i] = lit[i]  # a one-sided slab says L.n <= b, not L.n = I: no least-squares row
             for it in range(5):
                 if not _lsq(L, I[px], sel, k, tmp):
                     break
@@ -686,7 +698,7 @@ def solve_exact(
                     break
                 slack = eps * (3.0 - it) if it < 3 else 0.0
                 for i in range(k):
-                    if valid[px, i]:
+                    if lit[i]:
                         v = L[i, 0] * tmp[0] + L[i, 1] * tmp[1] + L[i, 2] * tmp[2]
                         sel[i] = v >= a[i] - slack and v <= b[i] + slack
         if 0 <= best < m and best >= m - _AP_GAP:
@@ -799,7 +811,7 @@ def exact_pixels(
         took = time.perf_counter() - t0
         s = e
         if s < P:
-            cancel.checkpoint()
+            cancel.checkpoint(s, P)
         if took < cancel.BATCH_SECONDS / 2:
             n *= 2
         elif took > 2 * cancel.BATCH_SECONDS:

@@ -7,6 +7,8 @@ Variables: ``n`` (3, continuous, in the box ``[-U, U]``) and ``y_i`` (binary,
 
 The big-M values are the largest violation over the box (eq. 5), so they never
 cut off an optimum: ``Mp_i = U ||L_i||_1 - b_i``, ``Mm_i = a_i + U ||L_i||_1``.
+A one-sided slab (``a_i = -inf``, a shadow: ``L_i . n <= b_i``) has only the first
+row; its second is free (bounds ``-inf, inf``), so ``Mp_i`` alone must be valid, and is.
 (The paper's ``M = 255 + eps`` is not valid for a box of +-255.) Unusable images
 get ``y_i`` fixed to 1 and free rows.
 
@@ -115,18 +117,20 @@ class MilpSolver:
         lo_y = np.where(valid, 0.0, 1.0)
         h.changeColsBounds(k, np.arange(3, 3 + k, dtype=np.int32), lo_y, np.ones(k))
         mp = U * self.l1 - b
-        mm = a + U * self.l1
+        # a one-sided slab (a = -inf, a shadow: L.n <= b) has no lower row: it is free
+        two = valid & np.isfinite(a)
+        mm = np.where(two, a, 0.0) + U * self.l1
         rows = np.arange(2 * k, dtype=np.int32)
         lower = np.empty(2 * k)
         upper = np.empty(2 * k)
         lower[0::2], upper[0::2] = -inf, np.where(valid, b, inf)
-        lower[1::2], upper[1::2] = np.where(valid, a, -inf), inf
+        lower[1::2], upper[1::2] = np.where(two, a, -inf), inf
         h.changeRowsBounds(2 * k, rows, lower, upper)
         for i in range(k):
             h.changeCoeff(2 * i, 3 + i, -mp[i])
             h.changeCoeff(2 * i + 1, 3 + i, mm[i])
-        # a feasible start: the least-squares point and the y it implies
-        start = _lsq_start(L, I, valid, U)
+        # a feasible start: the least-squares point (of the two-sided slabs) and the y it implies
+        start = _lsq_start(L, I, two if two.sum() >= 3 else valid, U)
         v = L @ start
         y = np.where(valid & (v >= a) & (v <= b), 0.0, 1.0)
         h.setSolution(_solution(np.concatenate([start, y])))
@@ -162,7 +166,7 @@ class MilpSolver:
         lo, hi = _bounds(np.asarray(I, dtype=np.float64), bounds)
         for p in range(P):
             if p:
-                checkpoint()  # a tile task notices a cancel between pixels (worker.cancel)
+                checkpoint(p, P)  # a tile task notices a cancel between pixels (worker.cancel)
             v = valid[p]
             if v.sum() < 3:
                 continue

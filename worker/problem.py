@@ -15,9 +15,10 @@ Two kinds of image are *outliers by definition*, never candidates:
   entirely by the clamp.
 * saturated: ``I_i >= saturation`` (the sensor's maximum); the true value is unknown.
 
-**Models.** ``paper`` is the formulation above, exactly. ``robust`` (the CLI and HTTP
-default) generalises it for real captures, and every part stays a set of k slabs
-``lo_i <= L_i . n <= hi_i``, so the optimum is still exact and checkable against the MILP:
+**Models.** ``paper`` is the formulation above, exactly. ``robust`` (the default of the
+CLI, HTTP, :func:`worker.solve.solve` and ``maxfs demo``) generalises it for real captures,
+and every part stays a set of k slabs ``lo_i <= L_i . n <= hi_i``, so the optimum is still
+exact and checkable against the MILP:
 
 * tolerance growing with intensity: ``|I_i - s_i| <= t_i``, ``t_i = eps + eps_rel I_i``;
 * a camera/BRDF response ``I = s^g`` (``response`` g, estimated per job, 1 = Lambertian):
@@ -26,11 +27,14 @@ default) generalises it for real captures, and every part stays a set of k slabs
   the refit is least squares on ``I^(1/g)``;
 * shadows follow the noise: ``shadow = eps / 3`` (one noise sigma when eps is 3 sigma) and
   the clamp ``m`` is the shadow threshold (the paper's is ``eps``);
-* at each pixel the brightest ``drop_bright`` share (0.3) of the candidates (at least 3
-  are kept) are outliers by definition: likely specular or sheen that fits within the
-  tolerance. Measured (``bench/accuracy.py``, mean error): DiLiGenT cat 5.50 -> 5.10,
-  pot1 6.90 -> 6.07, cow 13.69 -> 14.41 (still ahead of least squares, 15.53), and
-  better on the three synthetic scenes;
+* a shadow is evidence (``shadow_slabs``): the sensor sees ``max(L.n, 0)``, so an
+  observation ``I <= shadow`` says ``L.n <= I + t``, the one-sided slab ``lo = -inf``. It
+  counts as an inlier where it holds (the optimum stays exact and MILP-checked), only where
+  a first-pass normal agrees the light is behind (else it is a cast shadow, an outlier), and
+  it never enters the least-squares refit (it bounds ``n``, it does not measure it);
+* near-mirror highlights (``mirror_deg``, :mod:`worker.outliers`): lit candidates whose
+  half-vector is within 20 degrees of a first-pass normal and that are brighter than it
+  predicts are outliers; each pixel keeps at least 6 lit candidates;
 * ``fallback``: a pixel with fewer than 3 candidates (or rank-deficient inliers) gets the
   least-squares fit on its non-zero, unsaturated observations instead of no normal.
 
@@ -79,6 +83,13 @@ class Thresholds:
         Share of each pixel's candidates, brightest first, that are outliers by definition.
     fallback
         Least squares on the non-zero unsaturated observations where Max-FS gives no normal.
+    shadow_slabs
+        A shadow (finite, unsaturated, ``<= shadow``) is the one-sided slab
+        ``L.n <= (max(I, 0) + t)^(1/g)``: an inlier when the light is (nearly) behind the
+        surface, never a least-squares row.
+    mirror_deg
+        Lit candidates whose half-vector lies within this angle of a first-pass normal
+        and that are brighter than it predicts are outliers (:mod:`worker.outliers`); 0: none.
     """
 
     eps: float
@@ -90,6 +101,8 @@ class Thresholds:
     min_shading: float | None = None
     drop_bright: float = 0.0
     fallback: bool = False
+    shadow_slabs: bool = False
+    mirror_deg: float = 0.0
 
 
 def make_thresholds(
@@ -141,6 +154,8 @@ def make_thresholds(
         min_shading=shadow_v if robust else None,
         drop_bright=float(d.drop_bright if drop_bright is None else drop_bright),
         fallback=bool(d.fallback if fallback is None else fallback),
+        shadow_slabs=d.shadow_slabs,
+        mirror_deg=d.mirror_deg,
     )
 
 
@@ -157,12 +172,18 @@ def saturation_vector(k: int, saturation: float | ArrayLike | None) -> NDArray[n
     return sat
 
 
+#: Largest intensity used as an observation: above it a value is treated like a saturated one
+#: (a float32 pixel near its maximum, 3e38, solved to an albedo of +inf once scaled).
+MAX_INTENSITY = 1e30
+
+
 def usable(images: NDArray[np.floating], th: Thresholds) -> NDArray[np.bool_]:
-    """Observations that may be inliers: finite, above shadow, below saturation.
+    """Observations that may be inliers: finite, above shadow, below saturation and
+    :data:`MAX_INTENSITY`.
 
     ``images`` has the image axis first: ``(k, ...)``.
     """
-    sat = th.saturation.reshape((-1,) + (1,) * (images.ndim - 1))
+    sat = np.minimum(th.saturation, MAX_INTENSITY).reshape((-1,) + (1,) * (images.ndim - 1))
     with np.errstate(invalid="ignore"):
         return np.isfinite(images) & (images > th.shadow) & (images < sat)
 
@@ -184,8 +205,16 @@ def slabs(
     t = th.eps + th.eps_rel * i if th.eps_rel else th.eps
     floor = th.eps if th.min_shading is None else th.min_shading
     a, b = np.maximum(i - t, floor), i + t
+    if th.shadow_slabs:
+        with np.errstate(invalid="ignore"):
+            dark = i <= th.shadow
+        a = np.where(dark, -np.inf, a)
+        b = np.where(dark, np.maximum(i, 0.0) + t, b)
     if th.response != 1.0:
-        a, b = a ** (1.0 / th.response), b ** (1.0 / th.response)
+        with np.errstate(invalid="ignore"):
+            a, b = np.where(a > -np.inf, a, 0.0) ** (1.0 / th.response), b ** (1.0 / th.response)
+        if th.shadow_slabs:
+            a = np.where(dark, -np.inf, a)
     return a, b
 
 
@@ -207,14 +236,25 @@ def candidates(
     """``(P, k)`` observations that may be inliers: :func:`usable`, not ``outlier``, of an
     ``active`` pixel, and not among the brightest ``drop_bright`` share of the pixel's
     candidates (``floor(drop_bright * m)`` of ``m``, never leaving fewer than 3; ties go
-    to the lower image index)."""
+    to the lower image index). With ``shadow_slabs`` the :func:`shadows` are candidates too.
+    """
     i = np.asarray(intensities, dtype=np.float64)
     valid = usable(i.T, th).T
+    if th.shadow_slabs:
+        valid |= shadows(i, th)
     if outlier is not None:
         valid &= ~np.asarray(outlier, dtype=bool)
     if active is not None:
         valid &= np.asarray(active, dtype=bool)[:, None]
     return drop_brightest(i, valid, th.drop_bright)
+
+
+def shadows(intensities: NDArray[np.floating], th: Thresholds) -> NDArray[np.bool_]:
+    """``(P, k)`` finite observations at or below the shadow threshold (the one-sided slabs
+    of ``shadow_slabs``); saturation thresholds above the shadow one keep them unsaturated."""
+    i = np.asarray(intensities, dtype=np.float64)
+    with np.errstate(invalid="ignore"):
+        return np.isfinite(i) & (i <= th.shadow)
 
 
 def drop_brightest(
@@ -239,5 +279,3 @@ def drop_brightest(
 def box_halfwidth(b: NDArray[np.float64], valid: NDArray[np.bool_], box_factor: float) -> float:
     """Half-width ``U`` of the box on ``n`` for one pixel."""
     return float(box_factor * (b[valid].max() if valid.any() else 1.0))
-
-

@@ -5,7 +5,7 @@ Example
 >>> from maxfs.worker import synthetic
 >>> from maxfs.worker.solve import solve
 >>> scene = synthetic.sphere(k=12, size=32)
->>> sol = solve(scene.images, scene.lights, scene.mask, eps=1.0, saturation=255)
+>>> sol = solve(scene.images, scene.lights, scene.mask)  # the CLI's defaults: robust model, eps auto
 >>> sol.normal.shape, sol.inliers.shape
 ((32, 32, 3), (12, 32, 32))
 """
@@ -23,8 +23,10 @@ from maxfs.storage.errors import InvalidInputError
 from maxfs.storage.observations import ObservationModel
 from maxfs.storage.options import (
     DEFAULT_BOX_FACTOR,
+    DEFAULT_EPS,
     DEFAULT_MAX_NODES,
     DEFAULT_MILP_TIME_LIMIT,
+    DEFAULT_MODEL,
     MAX_LIGHT_CONDITION,
     MODEL_DEFAULTS,
     Estimate,
@@ -113,7 +115,10 @@ def solve_pixels(
     S = shading(I, th)  # what L.n should match: I, or I^(1/g) under a response
     found = impl.search(Batch(I, S, L, th, act, outlier, max_nodes, milp_time_limit))
     point, inl, optimal, nodes, source = found.point, found.inliers, found.optimal, found.nodes, found.source
-    n = refit(S, inl, L, MAX_LIGHT_CONDITION)  # a badly conditioned inlier set determines no normal
+    # the refit is least squares on the lit inliers: a shadow inlier says L.n <= s, not L.n = I
+    # (it would pull n toward the shadow's value), so it counts for the optimum only
+    lit = inl & usable(I.T, th).T if impl.max_fs else inl
+    n = refit(S, lit, L, MAX_LIGHT_CONDITION)  # a badly conditioned inlier set determines no normal
     if th.fallback and impl.max_fs:
         need = np.flatnonzero(act & ~np.isfinite(n[:, 0]))
         if need.size:  # least squares on the non-zero, unsaturated observations
@@ -124,6 +129,7 @@ def solve_pixels(
             got = np.isfinite(nf[:, 0])
             n[need[got]] = nf[got]
             inl[need] = fb & got[:, None]
+            lit[need] = inl[need]
             optimal[need] = False
             source[need[got]] = Source.FIT
     normal, albedo = normal_albedo(n)
@@ -136,7 +142,7 @@ def solve_pixels(
     albedo_rgb = None
     if rgb is not None:
         rgb_s = shading(np.asarray(rgb, dtype=np.float64), th)
-        albedo_rgb = channel_albedo(rgb_s, inl, L, normal)
+        albedo_rgb = channel_albedo(rgb_s, lit & solved[:, None], L, normal)
     return PixelResult(normal, albedo, albedo_rgb, inl, count, optimal, point, nodes, source)
 
 
@@ -333,7 +339,7 @@ def solve(
     lights: ArrayLike,
     mask: ArrayLike | None = None,
     *,
-    eps: float | str = 1.0,
+    eps: float | str = DEFAULT_EPS,
     solver: Solver | str = Solver.EXACT,
     intensities: ArrayLike | None = None,
     shadow: float | None = None,
@@ -342,7 +348,7 @@ def solve(
     max_nodes: int = DEFAULT_MAX_NODES,
     milp_time_limit: float = DEFAULT_MILP_TIME_LIMIT,
     tile: int = DEFAULT_TILE,
-    model: Model | str = Model.PAPER,
+    model: Model | str = DEFAULT_MODEL,
     response: float | str | None = None,
     eps_rel: float | None = None,
     drop_bright: float | None = None,
@@ -362,7 +368,7 @@ def solve(
     mask
         Optional (H, W) bool; False pixels are not solved.
     eps
-        Tolerance of the Lambertian law, or ``"auto"`` to estimate it.
+        Tolerance of the Lambertian law, or ``"auto"`` (default, as the CLI and HTTP) to estimate it.
     intensities
         Optional light intensities, (k,) or (k, C); images are divided by them.
     shadow, saturation, box_factor
@@ -372,8 +378,8 @@ def solve(
         Tile edge; pixels are solved tile by tile exactly as the service does, so
         results equal the service's for the same tile size (see :mod:`storage.tiles`).
     model
-        ``"paper"`` (default here: Yu, Seo, Lee 2010 as published) or ``"robust"`` (the
-        CLI and HTTP default); see :mod:`worker.problem`. The options below left None
+        ``"robust"`` (the default everywhere: :data:`storage.options.DEFAULT_MODEL`) or
+        ``"paper"`` (Yu, Seo, Lee 2010 as published); see :mod:`worker.problem`. The options below left None
         take the model's values (:data:`worker.problem.MODEL_DEFAULTS`).
     response
         Exponent g of ``I = (L.n)^g``, or ``"auto"`` (:func:`worker.noise.select_response`).
@@ -460,4 +466,3 @@ def solve(
         full["source"],
         resp_v,
     )
-

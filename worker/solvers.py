@@ -19,7 +19,8 @@ from maxfs.storage.outputs import Source
 from maxfs.worker.exact import exact_pixels
 from maxfs.worker.lstsq import refit
 from maxfs.worker.milp import MilpSolver
-from maxfs.worker.problem import Thresholds, candidates, slabs
+from maxfs.worker.outliers import first_pass, near_mirror
+from maxfs.worker.problem import Thresholds, candidates, slabs, usable
 
 
 @dataclass(frozen=True)
@@ -98,12 +99,25 @@ def _max_fs(rows_search: RowSearch) -> Callable[[Batch], Search]:
     def search(b: Batch) -> Search:
         P, k = b.I.shape
         valid = candidates(b.I, b.th, b.outlier, b.active)
+        lit = valid & usable(b.I.T, b.th).T  # two-sided slabs; the rest are one-sided shadows
+        if b.th.mirror_deg > 0 or b.th.shadow_slabs:
+            n0 = first_pass(b.S, lit, b.L)
+            if b.th.shadow_slabs:
+                # a shadow is a one-sided slab only where the first pass agrees the light is
+                # behind the surface; a dark image the first pass calls lit is a cast shadow
+                _, hi = slabs(b.I, b.th)
+                with np.errstate(invalid="ignore"):
+                    valid &= lit | ~(n0 @ b.L.T > hi)
+            if b.th.mirror_deg > 0:
+                bright = near_mirror(b.S, lit, b.L, b.th.mirror_deg, _one_sigma(b), n0)
+                valid &= ~bright
+                lit &= ~bright
         point = np.full((P, 3), np.nan)
         inl = np.zeros((P, k), dtype=bool)
         optimal = np.zeros(P, dtype=bool)
         nodes = np.zeros(P, dtype=np.int64)
         source = np.full(P, Source.UNDETERMINED, dtype=np.uint8)
-        rows = np.flatnonzero(valid.sum(axis=1) >= 3)
+        rows = np.flatnonzero(lit.sum(axis=1) >= 3)
         if rows.size:
             lo, hi = slabs(b.I[rows], b.th)
             pt, il, nd, cert = rows_search(b.S[rows], lo, hi, valid[rows], b.L, b)
@@ -112,6 +126,12 @@ def _max_fs(rows_search: RowSearch) -> Callable[[Batch], Search]:
         return Search(point, inl, optimal, nodes, source)
 
     return search
+
+
+def _one_sigma(b: Batch) -> float:
+    """One noise sigma (eps is three) in the units of ``S``: the highlight test's margin."""
+    s = b.th.eps / 3.0
+    return s ** (1.0 / b.th.response) if b.th.response != 1.0 else s
 
 
 #: Name -> implementation; the one place a solver's name meets its code.
