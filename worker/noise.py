@@ -172,21 +172,27 @@ def estimate_noise(
     r_e = np.where(on, e - n_e @ L.T, np.nan)
     fin &= np.isfinite(r_e)  # (a kept half the noise leaves degenerate: that pixel sits out)
     order = np.argsort(Is[fin], kind="stable")
-    raw = _bin_sigmas(np.abs(r[fin])[order], by_intensity)
-    unit = _bin_sigmas(np.abs(r_e[fin])[order], by_intensity)
-    sigma = float(np.min(np.where(unit > 0, raw / np.where(unit > 0, unit, 1.0), raw))) if raw.size else 0.0
+    sigma = _consistent_sigma(np.abs(r[fin])[order], np.abs(r_e[fin])[order], by_intensity)
     return max(EPS_SIGMAS * sigma, _floor(Is, sel, step)), sigma
 
 
-def _bin_sigmas(res: NDArray[np.float64], by_intensity: bool) -> NDArray[np.float64]:
-    """``1.4826 median |r|`` of absolute residuals ``res`` sorted by intensity: one value,
-    or with ``by_intensity`` one per bin of :data:`NOISE_BINS` of equal counts (none for
-    no residuals)."""
+def _consistent_sigma(res: NDArray[np.float64], unit: NDArray[np.float64], by_intensity: bool) -> float:
+    """``median |r| / median |r_unit|`` of absolute residuals sorted by intensity (``unit``:
+    the same estimator's residuals on unit noise, the consistency factor). With
+    ``by_intensity``, over the half of :data:`NOISE_BINS` bins of equal counts where that
+    ratio is smallest (the model fits best there): pooling half of them rather than taking
+    the smallest bin keeps the minimum of ten noisy ratios from biasing sigma low, which
+    matters at small k, where most residuals of a pixel are those of an almost exact fit."""
     if not res.size:
-        return np.zeros(0)
+        return 0.0
     if by_intensity and res.size >= NOISE_BINS * MIN_PER_BIN:
-        return np.array([1.4826 * float(np.median(b)) for b in np.array_split(res, NOISE_BINS)])
-    return np.array([1.4826 * float(np.median(res))])
+        rb, ub = np.array_split(res, NOISE_BINS), np.array_split(unit, NOISE_BINS)
+        ratio = np.array([np.median(a) / max(np.median(b), 1e-300) for a, b in zip(rb, ub, strict=True)])
+        best = np.argsort(ratio, kind="stable")[: NOISE_BINS // 2]
+        res = np.concatenate([rb[i] for i in best])
+        unit = np.concatenate([ub[i] for i in best])
+    u = float(np.median(unit))
+    return float(np.median(res)) / u if u > 0 else 1.4826 * float(np.median(res))
 
 
 def _row_medians(r: NDArray[np.float64]) -> NDArray[np.float64]:
