@@ -129,11 +129,15 @@ def solve_pixels(
             need = np.flatnonzero(act & ~np.isfinite(n[:, 0]))
             if not need.size:
                 break
-            fb = usable(I[need].T, _no_shadow(th)).T if nonzero else np.isfinite(I[need])
+            if nonzero:
+                fb = usable(I[need].T, _no_shadow(th)).T
+            else:
+                with np.errstate(invalid="ignore"):
+                    fb = np.isfinite(I[need]) & (I[need] < th.saturation)
             if outlier is not None:
                 fb &= ~outlier[need]
             nf = refit(S[need], fb, L, MAX_LIGHT_CONDITION)
-            got = np.isfinite(nf[:, 0])
+            got = np.isfinite(nf[:, 0]) & np.any(nf != 0.0, axis=1)  # all zeros: no direction
             n[need[got]] = nf[got]
             inl[need] = fb & got[:, None]
             lit[need] = inl[need]
