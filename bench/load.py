@@ -9,7 +9,10 @@ and cancel every other user's jobs (all must answer 404) and lists its own jobs.
 With ``--hostile``, threads send what issue #10 catalogued, in a loop, for as long
 as the users work: 56 MB JSON bodies without a token, PNG decompression bombs, stalled
 uploads (left to time out), a job of tiny tiles, start/cancel storms on one job, and
-slow readers of a large result. Their answers are counted by status code.
+slow readers of a large result. Their answers are counted by status code. Then issue #24's
+attacks, each on a fresh server of default limits (:mod:`bench.attacks`): 1,000 slow or
+silent connections (from one address, and from 20), 300 never-read downloads by one user,
+and a data disk (a 24 MB tmpfs; needs root) that fills mid-run.
 
     python -m bench.load [--users 3] [--jobs 3] [--k 12] [--size 64] [--workers 2] [--hostile]
 
@@ -70,6 +73,36 @@ def main() -> None:
         for what, n in sorted(r.hostile.items()):
             print(f"| {what} | {n} |")
     assert all(s in FINAL_STATES for s in r.states.values())
+    if args.hostile:
+        print()
+        print("| attack (issue #24) | another client meanwhile | the server |")
+        print("|---|---|---|")
+        for row in _attacks(args.workers):
+            print(f"| {row['attack']} | {row['other client']} | {row['server']} |")
+
+
+def _attacks(workers: int) -> list[dict]:
+    """Slow clients, stalled downloads and a full disk against a server of default limits."""
+    from bench import attacks
+
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="maxfs-attacks-") as tmp:
+        env = {"MAXFS_MIN_FREE_BYTES": "0"}
+        server = Server(Path(tmp) / "data", "", Path(tmp), workers=workers, auth=True, env=env)
+        try:
+            alice, bob = server.token("alice"), server.token("bob")
+            for n, addresses in ((1000, 1), (1000, 20)):
+                rows.append(attacks.slow_clients(server.url, alice, n, addresses, header_timeout=10.0))
+            rows.append(attacks.stalled_downloads(server.url, server.proc.pid, alice, bob, 300))
+        finally:
+            server.kill()
+        logs = Path(tmp)
+        rows.append(
+            attacks.full_disk(
+                lambda data, env: Server(data, "", logs, workers=workers, auth=True, env=env), logs
+            )
+        )
+    return rows
 
 
 def _kb(pid: int, key: str) -> int:

@@ -13,7 +13,21 @@ on disk), ``maxfs.worker`` (the solvers) and ``maxfs.service`` (the CLI, the HTT
 job runners). Importing ``maxfs`` loads neither the solver nor the server.
 """
 
-from maxfs.api import Result, open_result, solve, solve_folder
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from maxfs.api import Result, open_result, solve, solve_folder
 
 __all__ = ["Result", "open_result", "solve", "solve_folder"]
 __version__ = "0.1.0"
+
+
+def __getattr__(name: str) -> Any:
+    """The public names, from :mod:`maxfs.api` on first use: importing the package itself costs
+    nothing (the ``maxfs`` script imports it first, and a Ctrl-C then gets a line, not numpy's
+    import traceback: :mod:`maxfs.service.cli.entry`)."""
+    if name in __all__:
+        from maxfs import api
+
+        return getattr(api, name)
+    raise AttributeError(f"module 'maxfs' has no attribute {name!r}")

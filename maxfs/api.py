@@ -24,6 +24,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from maxfs.storage.errors import InvalidInputError, MaxfsError
+from maxfs.storage.options import INTRINSICS
 
 __all__ = ["Result", "open_result", "solve", "solve_folder"]
 
@@ -143,15 +144,20 @@ def solve_folder(
     workers
         Threads (default ``MAXFS_WORKERS``).
     overwrite
-        Replace an ``output`` that holds other inputs.
+        Replace an ``output`` that holds other inputs or other parameters (otherwise refused).
     **options
-        Solve options by the CLI's names (``eps``, ``solver``, ``model``, ``tile``, ...;
-        ``maxfs run -h`` lists them); unset ones take the CLI's defaults.
+        Solve options by the CLI's names (``eps``, ``solver``, ``model``, ``tile``, ``depth``, ``fx``,
+        ...; ``maxfs run -h`` lists them); unset ones take the CLI's defaults. A ``K.txt`` in the folder
+        gives the camera for perspective depth unless ``fx, fy, cx, cy`` are given.
     """
     from maxfs.storage.folders import parse_selection, select_images
     from maxfs.storage.inputs import load_folder
 
     ds = load_folder(folder)
+    if not any(options.get(n) is not None for n in INTRINSICS):
+        from maxfs.service.results.research import folder_camera
+
+        options = dict(options) | folder_camera(folder)  # perspective depth from the folder's K.txt
     if images is not None:
         text = images if isinstance(images, str) else ",".join(str(int(i)) for i in images)
         ds = select_images(ds, parse_selection(text, ds.k))

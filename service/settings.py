@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from maxfs.storage.errors import InvalidInputError
+from maxfs.storage.options import MAX_PIXELS
 from maxfs.storage.tiles import DEFAULT_TASK_MEMORY
 
 LOOPBACK = ("127.0.0.1", "::1", "localhost")
@@ -114,7 +115,7 @@ class Settings:
     #: Most images per job.
     max_k: int = 1000
     #: Most pixels per image (H x W).
-    max_pixels: int = 64_000_000
+    max_pixels: int = MAX_PIXELS
     #: Most jobs per user that are not finished (created, uploading, queued or running).
     max_open_jobs: int = 8
     #: Free disk space the server keeps in reserve: a job or upload that would eat into it gets 507.
@@ -141,10 +142,21 @@ class Settings:
     upload_idle_timeout: float = 60.0
     #: Uploads (image or mask bodies) one user may have in flight at once (429 beyond).
     max_uploads_per_user: int = 8
+    #: Streamed downloads (NPY arrays, results.zip) one user may have in flight at once (429
+    #: beyond): each holds a piece of its answer in memory while its reader is slow.
+    max_downloads_per_user: int = 4
+    #: Seconds a download's reader may take nothing before the download is dropped.
+    download_idle_timeout: float = 60.0
     #: Encoded images (PNG/TIFF) decoded at once, in threads, each bounded by its job's image size.
     decode_slots: int = 2
     #: Open connections ``maxfs serve`` accepts at once; beyond that new ones get 503.
     max_connections: int = 1024
+    #: Open connections one client address may have; beyond that a new one gets 503 and is
+    #: closed before anything is read (:mod:`service.http.connections`). 0 = no limit.
+    max_connections_per_client: int = 64
+    #: Seconds a request head may take to arrive, from the connection's start or the previous
+    #: answer; a connection that sends its head slower (or nothing) is closed. 0 = no limit.
+    header_timeout: float = 10.0
     #: Longest side of a PNG preview; larger results are shown decimated.
     preview_max_edge: int = 1024
     #: Days a finished job (done, failed, cancelled), or one left created/uploading, is kept

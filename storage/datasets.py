@@ -27,6 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from maxfs.storage.errors import DatasetError, InvalidInputError
+from maxfs.storage.imageio import load_npy
 from maxfs.storage.imageio import read_image as _decode_file
 from maxfs.storage.options import DTYPES, check_lights
 
@@ -49,6 +50,13 @@ class Dataset:
     #: Files the dataset is read from (images, mask, lights): their fingerprint lets a
     #: re-run recognise unchanged inputs without decoding them again.
     files: tuple[Path, ...] = ()
+    #: How the user knows image ``i``: "image 10 (010.png)", numbered from 1 like ``--images``
+    #: (empty: "image N" alone, for stacks in one file).
+    image_labels: tuple[str, ...] = ()
+
+    def label(self, i: int) -> str:
+        """Image ``i`` (0-based) as the user knows it: 1-based number and file name."""
+        return self.image_labels[i] if i < len(self.image_labels) else f"image {i + 1}"
 
     @property
     def nbytes(self) -> int:
@@ -76,11 +84,13 @@ class Dataset:
         )
         if img.shape != expect:
             raise DatasetError(
-                f"{self.name}: image {i} has shape {img.shape} but image 0 has {expect}; "
+                f"{self.name}: {self.label(i)} has shape {img.shape} but {self.label(0)} has {expect}; "
                 "all images must have the same size"
             )
         if str(img.dtype) != self.dtype:
-            raise DatasetError(f"{self.name}: image {i} is {img.dtype} but image 0 is {self.dtype}")
+            raise DatasetError(
+                f"{self.name}: {self.label(i)} is {img.dtype} but {self.label(0)} is {self.dtype}"
+            )
         return img
 
 
@@ -149,6 +159,11 @@ def _existing(paths: list[Path], folder: Path, *names: str) -> tuple[Path, ...]:
     return (*paths, *(folder / n for n in names if (folder / n).exists()))
 
 
+def labels(paths: list[Path]) -> tuple[str, ...]:
+    """``image N (file name)`` for each of ``paths``, N from 1 (see :meth:`Dataset.label`)."""
+    return tuple(f"image {i + 1} ({p.name})" for i, p in enumerate(paths))
+
+
 def _probe(name: str, layout: str, k: int, reader: Callable[[int], NDArray], **kw) -> Dataset:
     first = reader(0)
     h, w = first.shape[:2]
@@ -183,6 +198,7 @@ def diligent(folder: Path) -> Dataset:
         intensities=inten,
         mask=mask,
         files=_existing(paths, folder, "mask.png", "light_directions.txt", "light_intensities.txt"),
+        image_labels=labels(paths),
     )
     if inten is not None and ds.channels is None:
         # grey images with RGB intensities: use their mean
@@ -222,7 +238,7 @@ class _NpyImages:
             f.seek(self.offset + i * count * self.dtype.itemsize)
             img = np.fromfile(f, dtype=self.dtype, count=count)
         if img.size != count:
-            raise DatasetError(f"{self.path} is truncated: image {i} is incomplete")
+            raise DatasetError(f"{self.path} is truncated: image {i + 1} is incomplete")
         return img.reshape(self.shape[1:])
 
 
@@ -234,7 +250,7 @@ def npy_stack(folder: Path) -> Dataset:
         raise DatasetError(f"{folder}/images.npy has dtype {stack.dtype}; use one of {', '.join(DTYPES)}")
     k = stack.shape[0]
     if (folder / "lights.npy").exists():
-        raw = np.load(folder / "lights.npy").astype(np.float64)
+        raw = load_npy(folder / "lights.npy").astype(np.float64)
     else:
         raw = _read_matrix(folder / "lights.txt", 3, "light directions")
     lights = _lights(raw, k, folder)
@@ -242,10 +258,10 @@ def npy_stack(folder: Path) -> Dataset:
     for nm in ("intensities.npy", "intensities.txt"):
         p = folder / nm
         if p.exists():
-            inten = np.load(p) if nm.endswith(".npy") else np.loadtxt(p, ndmin=2)
+            inten = load_npy(p) if nm.endswith(".npy") else np.loadtxt(p, ndmin=2)
     mask = None
     if (folder / "mask.npy").exists():
-        mask = np.load(folder / "mask.npy").astype(bool)
+        mask = load_npy(folder / "mask.npy").astype(bool)
     elif (folder / "mask.png").exists():
         mask = _mask_from(folder / "mask.png")
     return _probe(
@@ -302,6 +318,7 @@ def uw_psm(folder: Path) -> Dataset:
         intensities=None,
         mask=mask,
         files=(*paths, *([mask_path] if mask_path.exists() else []), root / "lights.txt", listing),
+        image_labels=labels(paths),
     )
 
 

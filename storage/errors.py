@@ -59,3 +59,14 @@ class RequestTimeoutError(MaxfsError, TimeoutError):
 
 class ClientGoneError(MaxfsError, ConnectionError):
     """The client closed the connection before its request was complete."""
+
+
+def is_disk_full(exc: BaseException) -> bool:
+    """Whether ``exc`` is a write refused by a full disk or an exhausted quota (not one of ours)."""
+    import errno
+
+    return (
+        isinstance(exc, OSError)
+        and not isinstance(exc, MaxfsError)
+        and exc.errno in (errno.ENOSPC, errno.EDQUOT)
+    )

@@ -22,8 +22,18 @@ import numpy as np
 import tifffile
 from numpy.typing import NDArray
 
-from maxfs.storage.datasets import Dataset, _existing, _lights, _mask_from, _probe, _read_matrix, read_image
+from maxfs.storage.datasets import (
+    Dataset,
+    _existing,
+    _lights,
+    _mask_from,
+    _probe,
+    _read_matrix,
+    labels,
+    read_image,
+)
 from maxfs.storage.errors import DatasetError, InvalidInputError
+from maxfs.storage.imageio import load_npy
 from maxfs.storage.options import (
     DTYPES,
     WARN_LIGHT_CONDITION,
@@ -58,7 +68,7 @@ def _read_lights(folder: Path, k: int) -> tuple[NDArray[np.float64], NDArray[np.
     lf = lights_file(folder)
     if lf is None:
         raise DatasetError(f"{folder}: no lights file; add light_directions.txt (k lines of x y z)")
-    raw = np.load(lf).astype(np.float64) if lf.suffix == ".npy" else _read_matrix(lf, 3, "light directions")
+    raw = load_npy(lf).astype(np.float64) if lf.suffix == ".npy" else _read_matrix(lf, 3, "light directions")
     lights = _lights(raw, k, lf)
     inten, used = None, [lf]
     for n in INTENSITY_FILES:
@@ -147,6 +157,7 @@ def plain_folder(folder: Path) -> Dataset:
         intensities=inten,
         mask=mask,
         files=_existing([*paths, *used], folder, "mask.png"),
+        image_labels=labels(paths),
     )
 
 
@@ -194,6 +205,7 @@ def select_images(ds: Dataset, indices: list[int]) -> Dataset:
         mask=ds.mask,
         _reader=lambda i: reader(idx[i]),
         files=(),  # no file fingerprint: the same files with another choice are other inputs
+        image_labels=tuple(ds.label(j) for j in idx),  # as numbered in the folder
     )
 
 

@@ -19,7 +19,7 @@ from numpy.typing import NDArray
 from PIL import Image, UnidentifiedImageError
 
 from maxfs.storage.errors import InvalidInputError, PayloadTooLargeError
-from maxfs.storage.options import DTYPES
+from maxfs.storage.options import DTYPES, MAX_PIXELS
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 TIFF_MAGICS = (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+")
@@ -43,22 +43,14 @@ def _normalise(arr: NDArray, what: str) -> NDArray:
     return np.ascontiguousarray(arr)
 
 
+#: Most bytes one local image may decode to (MAX_PIXELS of RGB float32).
+MAX_DECODED_BYTES = MAX_PIXELS * 3 * 4
+
+
 def decode_bytes(data: bytes, what: str = "image") -> NDArray:
-    """Decode PNG, TIFF, TGA, BMP or JPEG bytes (detected by content)."""
-    try:
-        if data.startswith(PNG_MAGIC):
-            arr = imagecodecs.png_decode(data)
-        elif data[:4] in TIFF_MAGICS:
-            arr = tifffile.imread(io.BytesIO(data))
-        else:
-            with Image.open(io.BytesIO(data)) as im:
-                im.load()
-                arr = _pil_array(im)
-    except InvalidInputError:
-        raise
-    except Exception as e:  # decoders raise many types for corrupt data
-        raise InvalidInputError(f"{what}: cannot decode image ({_reason(e)})") from None
-    return _normalise(np.asarray(arr), what)
+    """Decode PNG, TIFF, TGA, BMP or JPEG bytes (detected by content), with the checks of
+    :func:`decode_checked` and the local limits (:data:`MAX_PIXELS`)."""
+    return decode_checked(data, what, max_bytes=MAX_DECODED_BYTES, max_pixels=MAX_PIXELS)
 
 
 @dataclass(frozen=True)
@@ -152,10 +144,13 @@ def decode_checked(
     shape: tuple[int, ...] | None = None,
     hw: tuple[int, int] | None = None,
     dtype: str | np.dtype | None = None,
+    max_pixels: int | None = None,
 ) -> NDArray:
     """Decode one image only if its header fits: one page, ``shape`` (or height and width
-    ``hw``), ``dtype``, and at most ``max_bytes`` decoded. A mismatch is refused before any
-    pixel is decompressed; the decoder's answer is checked against the header again."""
+    ``hw``), ``dtype``, at most ``max_pixels`` pixels and ``max_bytes`` decoded. The one
+    reader of encoded images, for the server's uploads and the local loaders alike. A mismatch
+    is refused before any pixel is decompressed; the decoder's answer is checked against the
+    header again."""
     head = probe_bytes(data, what)
     if head.pages != 1:
         raise InvalidInputError(f"{what}: the file holds {head.pages} images (pages or frames); send one")
@@ -165,6 +160,11 @@ def decode_checked(
         raise InvalidInputError(f"{what} has shape {head.shape}, the job's images are {hw[0]} x {hw[1]}")
     if dtype is not None and head.dtype != np.dtype(dtype):
         raise InvalidInputError(f"{what} has dtype {head.dtype}, the job expects {np.dtype(dtype)}")
+    if max_pixels is not None and head.shape[0] * head.shape[1] > max_pixels:
+        raise PayloadTooLargeError(
+            f"{what} declares {head.shape[0]} x {head.shape[1]} pixels, more than the {max_pixels} "
+            "allowed per image; crop or bin it"
+        )
     if head.decoded_bytes > max_bytes:
         raise PayloadTooLargeError(
             f"{what}: decoding would take {head.decoded_bytes} bytes, more than the {max_bytes} allowed"
@@ -214,7 +214,7 @@ def _pil_array(im: Image.Image) -> NDArray:
 
 
 def read_image(path: Path) -> NDArray:
-    """Read an image file (see :func:`decode_bytes`)."""
+    """Read an image file (see :func:`decode_bytes`: its header is checked before decoding)."""
     path = Path(path)
     try:
         data = path.read_bytes()
@@ -223,6 +223,26 @@ def read_image(path: Path) -> NDArray:
     except OSError as e:
         raise InvalidInputError(f"cannot read image file {path}: {e}") from None
     return decode_bytes(data, what=str(path))
+
+
+def load_npy(path: Path, what: str = "") -> NDArray:
+    """An NPY file's array, never its pickled objects: a file that holds Python objects, or
+    is no NPY at all, is an :class:`InvalidInputError` saying so (not a traceback)."""
+    path = Path(path)
+    what = what or str(path)
+    try:
+        return np.load(path, allow_pickle=False)
+    except FileNotFoundError:
+        raise InvalidInputError(f"{what}: no such file") from None
+    except ValueError as e:
+        if "allow_pickle" in str(e):
+            raise InvalidInputError(
+                f"{what} holds Python objects (a pickled array), which are never loaded: they can run "
+                "code. Save a plain numeric array (np.save of a float or integer array)"
+            ) from None
+        raise InvalidInputError(f"{what} is not a readable NPY file ({e})") from None
+    except (OSError, EOFError) as e:
+        raise InvalidInputError(f"{what} is not a readable NPY file ({e})") from None
 
 
 def encode_png(arr: NDArray) -> bytes:

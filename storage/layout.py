@@ -6,8 +6,6 @@ other Zarr tools read it as it is) and, beside it, what is not Zarr: ``maxfs-job
 that makes tile tasks stop) and ``previews/``. Arrays of ``results.zarr`` (``T`` = tile
 edge, chunks are tile-aligned)::
 
-    images        (k, H, W[, C])  uint8|uint16|float32  chunks (1, T, T[, C]) in shards (1, T, W'[, C])
-    uploaded      (k,)            bool                  chunks (1,)   set after images[i]
     lights        (k, 3)          float64
     intensities   (k, C|1)        float64
     mask          (H, W)          bool                  chunks (T, T)
@@ -18,9 +16,19 @@ edge, chunks are tile-aligned)::
     inlier_count  (H, W)          uint16
     optimal       (H, W)          bool
     source        (H, W)          uint8                 how the normal was obtained (worker.solve.Source)
-    done          (ny, nx)        int32                 chunks (1, 1)
-    tile_stats    (ny, nx, 3)     int64                 chunks (1, 1, 3)  active, solved, certified pixels
-    input_digests (k + 1, 32)     uint8                 chunks (1, 32)    BLAKE2b of image i; row k: mask
+    depth         (H, W)          float32               once integrated after the run
+    xyz, image, channel           coordinates: "x" "y" "z"; image numbers 1..k; "r" "g" "b" or "grey"
+    inputs/images (k, H, W[, C])  uint8|uint16|float32  chunks (1, T, T[, C]) in shards (1, T, W'[, C])
+    inputs/uploaded (k,)          bool                  chunks (1,)   set after images[i]
+    inputs/input_digests (k + 1, 32) uint8              chunks (1, 32)    BLAKE2b of image i; row k: mask
+    tiles/done    (ny, nx)        int32                 chunks (1, 1)
+    tiles/tile_stats (ny, nx, 3)  int64                 chunks (1, 1, 3)  active, solved, certified pixels
+
+``xarray.open_zarr(FOLDER / "results.zarr")`` reads the root: the results with their coordinates
+(``ds.normal.sel(xyz="z")``, ``ds.inliers.sel(image=3)``) and no bookkeeping. The input stack and
+the per-tile bookkeeping are in the subgroups ``inputs`` and ``tiles`` (``group="inputs"``);
+``inputs/images`` holds only the images with ``uploaded[i]`` (a local run that keeps the stack
+in memory stores just their digests).
 
 ``W'`` is W rounded up to a multiple of T. A tile task reads k chunks of ``images``
 (one per image, through each shard's index); an upload writes one band of T rows
@@ -46,6 +54,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import threading
 import time
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
@@ -88,15 +97,28 @@ class ProgressCounts:
     certified: int  # ... whose optimum was proved
 
 
-FORMAT_VERSION = 3
+FORMAT_VERSION = 4
 #: The Zarr group's folder inside a job folder.
 GROUP_DIR = "results.zarr"
+#: Where the arrays that are not results live in the group: subgroups, so that ``xarray.open_zarr``
+#: of the root shows the results alone (it reads no subgroup).
+PATHS: dict[str, str] = {
+    "images": "inputs/images",
+    "uploaded": "inputs/uploaded",
+    "input_digests": "inputs/input_digests",
+    "done": "tiles/done",
+    "tile_stats": "tiles/tile_stats",
+}
 #: Arrays that hold the input stack: left out of result downloads unless asked for.
-BULK_INPUTS = frozenset({"images"})
+BULK_INPUTS = frozenset({PATHS["images"]})
+#: Names of the colour channels: the ``channel`` coordinate (one "grey" for grey input).
+CHANNEL_NAMES = {None: ("grey",), 3: ("r", "g", "b")}  # as maxfs.Result.to_xarray names them
 #: ``input_digests[k]`` while a mask is being written (a crash leaves it there).
 MASK_WRITING = bytes([0xFF]) * DIGEST_BYTES
 RUNS_LOG = "maxfs-runs.log"
 CANCEL_FLAG = "maxfs-cancel"
+#: Folder of running tiles' progress: a file per tile holding its masked pixels solved so far.
+PROGRESS_DIR = "maxfs-progress"
 #: Zarr v3 ``dimension_names`` of the arrays that are not outputs (``images`` gets ``channel`` last for
 #: colour input); the outputs' are in :data:`storage.outputs.OUTPUT_TABLE`. So ``xarray.open_zarr``
 #: reads a store as a Dataset with named dimensions.
@@ -269,8 +291,12 @@ class JobStore:
         touches a dozen arrays)."""
         a = self._arrays.get(name)
         if a is None:
-            a = self._arrays[name] = self.group[name]
+            a = self._arrays[name] = self.group[PATHS.get(name, name)]
         return a
+
+    def _array(self, name: str) -> zarr.Array:
+        """Array ``name`` (in its subgroup, :data:`PATHS`), its metadata read now."""
+        return self.group[PATHS.get(name, name)]
 
     # -- creation and opening ---------------------------------------------------------------
     @classmethod
@@ -292,7 +318,11 @@ class JobStore:
         except (zarr.errors.ContainsGroupError, zarr.errors.ContainsArrayError, FileExistsError):
             raise ConflictError(f"{path} already holds a Zarr store") from None
         tc = (min(T, H), min(T, W))
-        g.create_array(
+        inputs, tile_group = g.create_group("inputs"), g.create_group("tiles")
+        inputs.update_attributes({"long_name": "the input stack and its digests (results are in the root)"})
+        tile_group.update_attributes({"long_name": "per-tile bookkeeping: done markers and pixel counts"})
+        _coordinates(g, k, C)
+        inputs.create_array(
             "images",
             shape=(k, *spec.image_shape),
             chunks=img_chunks,
@@ -302,7 +332,7 @@ class JobStore:
             dimension_names=DIMS["images"] + (("channel",) if C is not None else ()),
             attributes=DESCRIPTIONS["images"],
         )
-        g.create_array(
+        inputs.create_array(
             "uploaded",
             shape=(k,),
             chunks=(1,),
@@ -334,7 +364,7 @@ class JobStore:
                 dimension_names=o.dims,
                 attributes=DESCRIPTIONS[o.name],
             )
-        g.create_array(
+        tile_group.create_array(
             "done",
             shape=grid_shape(H, W, T),
             chunks=(1, 1),
@@ -343,7 +373,7 @@ class JobStore:
             dimension_names=DIMS["done"],
             attributes=DESCRIPTIONS["done"],
         )
-        g.create_array(
+        tile_group.create_array(
             "tile_stats",
             shape=(*grid_shape(H, W, T), 3),
             chunks=(1, 1, 3),
@@ -352,7 +382,7 @@ class JobStore:
             dimension_names=DIMS["tile_stats"],
             attributes=DESCRIPTIONS["tile_stats"],
         )
-        g.create_array(
+        inputs.create_array(
             "input_digests",
             shape=(k + 1, DIGEST_BYTES),
             chunks=(1, DIGEST_BYTES),
@@ -429,7 +459,7 @@ class JobStore:
     @property
     def band_rows(self) -> int:
         """Rows of one image shard: the unit an upload writes."""
-        return int(self.group["images"].shards[1])
+        return int(self._array("images").shards[1])
 
     def check_image(self, i: int, image: NDArray[Any]) -> None:
         """Refuse an image whose index, shape or dtype does not fit the job."""
@@ -453,8 +483,8 @@ class JobStore:
         """Store image ``i`` from consecutive bands of :attr:`band_rows` rows (the last may be
         shorter). ``uploaded[i]`` is False while the bands are written."""
         self.check_index(i)
-        images, y = self.group["images"], 0
-        self.group["uploaded"][i] = False
+        images, y = self._array("images"), 0
+        self._array("uploaded")[i] = False
         h = ArrayHasher(self.spec.image_shape, self.spec.dtype)
         for band in bands:
             images[i, y : y + band.shape[0]] = band
@@ -462,16 +492,16 @@ class JobStore:
             y += band.shape[0]
         if y != self.spec.height:
             raise InvalidInputError(f"image {i}: got {y} rows, the job expects {self.spec.height}")
-        self.group["input_digests"][i] = np.frombuffer(h.digest(), np.uint8)
-        self.group["uploaded"][i] = True
+        self._array("input_digests")[i] = np.frombuffer(h.digest(), np.uint8)
+        self._array("uploaded")[i] = True
 
     def uploaded(self) -> NDArray[np.bool_]:
-        return np.asarray(self.group["uploaded"][...])
+        return np.asarray(self._array("uploaded")[...])
 
     def digests(self) -> list[bytes]:
         """Recorded digests: images 0..k-1, then the mask (zeros = not written). One read of
         k + 1 chunks: callers that need several views of them take this list once."""
-        return [bytes(row) for row in np.asarray(self.group["input_digests"][...])]
+        return [bytes(row) for row in np.asarray(self._array("input_digests")[...])]
 
     def write_mask(self, mask: NDArray[np.bool_]) -> None:
         """Store the mask, band by band; a crash part-way leaves :meth:`mask_state`
@@ -482,7 +512,7 @@ class JobStore:
                 f"mask has shape {mask.shape}, the job's images are {s.height} x {s.width}"
             )
         m = np.ascontiguousarray(mask, dtype=bool)
-        dig = self.group["input_digests"]
+        dig = self._array("input_digests")
         dig[s.k] = np.frombuffer(MASK_WRITING, np.uint8)
         arr, rows = self.group["mask"], int(self.group["mask"].chunks[0])
         for y in range(0, s.height, rows):
@@ -505,7 +535,7 @@ class JobStore:
 
     def mask_state(self) -> str:
         """ "default" (none given: every pixel), "complete", or "incomplete" (a write was cut short)."""
-        d = bytes(np.asarray(self.group["input_digests"][self.spec.k]))
+        d = bytes(np.asarray(self._array("input_digests")[self.spec.k]))
         if d == MASK_WRITING:
             return "incomplete"
         return "default" if not any(d) else "complete"
@@ -520,7 +550,7 @@ class JobStore:
             self.check_index(i)
         idx = sorted(digests)
         rows = np.stack([np.frombuffer(digests[i], np.uint8) for i in idx])
-        self.group["input_digests"].set_orthogonal_selection((np.asarray(idx), slice(None)), rows)
+        self._array("input_digests").set_orthogonal_selection((np.asarray(idx), slice(None)), rows)
 
     def known_images(self, digests: list[bytes] | None = None) -> NDArray[np.bool_]:
         """Images whose digest is recorded (stored, or digested by an in-memory run), from
@@ -553,8 +583,8 @@ class JobStore:
         """Which tiles are finished with the current parameters."""
         p = self.params
         if p.eps is None:
-            return np.zeros(np.asarray(self.group["done"].shape), dtype=bool)
-        return np.asarray(self.group["done"][...]) == p.token()
+            return np.zeros(np.asarray(self._array("done").shape), dtype=bool)
+        return np.asarray(self._array("done")[...]) == p.token()
 
     def read_tile(self, t: Tile) -> tuple[NDArray[Any], NDArray[np.bool_]]:
         """Raw images ``(k, h, w[, C])`` and mask ``(h, w)`` of one tile."""
@@ -605,7 +635,7 @@ class JobStore:
     def progress(self) -> ProgressCounts:
         """Counts over the finished tiles, from the done grid and per-tile stats only."""
         done = self.done_grid()
-        stats = np.asarray(self.group["tile_stats"][...])[done]
+        stats = np.asarray(self._array("tile_stats")[...])[done]
         return ProgressCounts(
             tiles_done=int(done.sum()),
             tiles_total=int(done.size),
@@ -639,6 +669,8 @@ class JobStore:
         for p in sorted(self.path.rglob("*")):
             if not p.is_file() or p.name.startswith(".") or p.name == CANCEL_FLAG:
                 continue
+            if p.parent.name == PROGRESS_DIR:
+                continue
             if any(s == p or s in p.parents for s in skip):
                 continue
             out.append((p, p.relative_to(self.path).as_posix()))
@@ -666,6 +698,42 @@ class JobStore:
                     counts[t] = counts.get(t, 0) + 1
         return counts
 
+    # -- progress inside running tiles -----------------------------------------------------------
+    def note_tile_progress(self, tile_index: int, pixels: int) -> None:
+        """Record that a running tile has solved ``pixels`` of its masked pixels (a small file,
+        replaced atomically; any worker process may write it, the runner sums them)."""
+        d = self.path / PROGRESS_DIR
+        d.mkdir(exist_ok=True)
+        tmp = d / f".{tile_index}.{os.getpid()}.{threading.get_ident()}"
+        tmp.write_text(str(int(pixels)))
+        os.replace(tmp, d / str(tile_index))
+
+    def clear_tile_progress(self, tile_index: int | None = None) -> None:
+        """Forget one tile's progress note (it finished or stopped), or every tile's (a new run)."""
+        d = self.path / PROGRESS_DIR
+        if tile_index is not None:
+            (d / str(tile_index)).unlink(missing_ok=True)
+        elif d.is_dir():
+            for p in d.iterdir():
+                p.unlink(missing_ok=True)
+
+    def running_pixels(self, done: NDArray[np.bool_] | None = None) -> int:
+        """Masked pixels solved so far in tiles that have not finished (``done``: the done grid,
+        flattened, if the caller has it)."""
+        d = self.path / PROGRESS_DIR
+        if not d.is_dir():
+            return 0
+        grid = self.done_grid().ravel() if done is None else done
+        total = 0
+        for p in d.iterdir():
+            if not p.name.isdigit() or int(p.name) >= grid.size or grid[int(p.name)]:
+                continue
+            try:
+                total += int(p.read_text() or 0)
+            except (OSError, ValueError):  # replaced or removed while read: it counts next time
+                continue
+        return total
+
     def request_cancel(self) -> None:
         (self.path / CANCEL_FLAG).touch()
 
@@ -679,16 +747,16 @@ class JobStore:
     # -- arrays by name, for code outside this module (only JobStore touches the group) ----------
     def has_array(self, name: str) -> bool:
         """Whether the group holds array ``name`` (``depth`` exists once it is integrated)."""
-        return name in self.group
+        return PATHS.get(name, name) in self.group
 
     def array_meta(self, name: str) -> ArrayMeta:
         """Shape, dtype, chunks and attributes of array ``name``, without reading it."""
-        a = self.group[name]
+        a = self._array(name)
         return ArrayMeta(tuple(a.shape), np.dtype(a.dtype), tuple(a.chunks), dict(a.attrs))
 
     def read_array(self, name: str, region: Any = ...) -> NDArray[Any]:
         """``region`` of array ``name`` (NumPy basic indexing: an index, slices, a tuple of them)."""
-        return np.asarray(self.group[name][region])
+        return np.asarray(self._array(name)[region])
 
     def write_depth(self, depth: NDArray[np.floating], attrs: dict[str, Any]) -> None:
         """Store ``depth`` (H, W) as its row of the output table says, chunked like the mask,
@@ -705,6 +773,21 @@ class JobStore:
         )
         arr[...] = depth
         arr.update_attributes(attrs)
+
+
+def _coordinates(g: zarr.Group, k: int, channels: int | None) -> None:
+    """The coordinate arrays of the dimensions xarray indexes by label: ``xyz``, ``image``
+    (numbered from 1, as ``--images`` and the messages number them) and ``channel``."""
+    labels = {"xyz": ("x", "y", "z"), "channel": CHANNEL_NAMES[channels]}
+    for dim, words in labels.items():
+        a = g.create_array(dim, shape=(len(words),), dtype=str, dimension_names=(dim,))
+        a[...] = np.array(words)
+    g.create_array(
+        "image",
+        data=np.arange(1, k + 1, dtype=np.int32),
+        dimension_names=("image",),
+        attributes={"long_name": "image number, from 1 in the input folder's order"},
+    )
 
 
 @dataclass(frozen=True)

@@ -20,6 +20,10 @@ from maxfs.storage.errors import InvalidInputError
 #: 10 admits albedos up to ten times the brightest observation (``L.N >= 0.1``).
 DEFAULT_BOX_FACTOR = 10.0
 #: Pixel types of stored images (and of every loader and upload).
+#: Most pixels per image (H x W) anywhere: the server's default ``MAXFS_MAX_PIXELS`` and the
+#: local readers' limit (:mod:`storage.imageio`): a file declaring more is refused from its
+#: header, before decoding.
+MAX_PIXELS = 64_000_000
 DTYPES = ("uint8", "uint16", "float32")
 #: What every entry point (CLI, HTTP, ``worker.solve.solve()``, ``maxfs demo``) does with no options.
 DEFAULT_EPS = "auto"
@@ -36,6 +40,20 @@ class Solver(StrEnum):
     EXACT = "exact"  #: branch and bound, exact and fast (default)
     MILP = "milp"  #: the paper's big-M MILP with HiGHS (reference)
     L2 = "l2"  #: Woodham least squares on every image (baseline, not robust)
+
+
+class DepthMethod(StrEnum):
+    """Depth integration methods (:mod:`worker.depth`)."""
+
+    LS = "ls"  #: least squares, smooth everywhere (default)
+    BINI = "bini"  #: bilateral normal integration (Cao et al. 2022): keeps depth jumps
+    NONE = "none"  #: no depth
+
+
+#: bini's sharpness k (the paper's default): larger keeps more jumps.
+DEFAULT_DEPTH_K = 2.0
+#: Camera intrinsics, in pixels: all four or none (none: orthographic).
+INTRINSICS = ("fx", "fy", "cx", "cy")
 
 
 class Model(StrEnum):
@@ -171,6 +189,42 @@ def check_options(
             )
 
 
+def check_depth_options(
+    *,
+    depth: str = DepthMethod.LS.value,
+    depth_k: float = DEFAULT_DEPTH_K,
+    fx: float | None = None,
+    fy: float | None = None,
+    cx: float | None = None,
+    cy: float | None = None,
+    distance: float | None = None,
+) -> None:
+    """The validator of the depth options (method, bini's k, camera intrinsics, distance)."""
+    if depth not in tuple(DepthMethod):
+        raise InvalidInputError(f"unknown depth method {depth!r}; choose one of {', '.join(DepthMethod)}")
+    if not _finite_number("depth_k", depth_k) > 0:
+        raise InvalidInputError(f"depth_k must be a positive number (bini's sharpness; 2), got {depth_k!r}")
+    given = {n: v for n, v in zip(INTRINSICS, (fx, fy, cx, cy), strict=True) if v is not None}
+    if given and len(given) < 4:
+        missing = ", ".join(n for n in INTRINSICS if n not in given)
+        raise InvalidInputError(
+            f"perspective depth needs all of fx, fy, cx, cy (pixels); {missing} missing. Give all four, "
+            "or put the 3 x 3 intrinsic matrix in the dataset folder as K.txt"
+        )
+    for n, v in given.items():
+        _finite_number(n, v)
+    for n in ("fx", "fy"):
+        if n in given and not given[n] > 0:
+            raise InvalidInputError(f"{n} (focal length in pixels) must be > 0, got {given[n]!r}")
+    if distance is not None:
+        if not _finite_number("distance", distance) > 0:
+            raise InvalidInputError(f"distance must be a positive number (camera units), got {distance!r}")
+        if not given:
+            raise InvalidInputError(
+                "distance sets the scale of perspective depth: give the camera (fx, fy, cx, cy or K.txt) too"
+            )
+
+
 def light_singular_values(lights: ArrayLike) -> NDArray[np.float64]:
     """Singular values of the ``(k, 3)`` light matrix, largest first."""
     return np.linalg.svd(np.asarray(lights, dtype=np.float64), compute_uv=False)
@@ -283,4 +337,23 @@ SOLVE_OPTIONS: tuple[Option, ...] = (
     ),
     Option("dequantize", "bool", "integer input: read v > 0 as v + 0.5 (robust: true)"),
     Option("fallback", "bool", "least squares where Max-FS gives no normal (robust: true)"),
+    Option(
+        "depth",
+        "choice",
+        "depth from the normals after the run: ls (least squares: smooth objects), bini (bilateral "
+        "normal integration: keeps depth jumps at occlusions, slower) or none",
+        DepthMethod.LS.value,
+        tuple(m.value for m in DepthMethod),
+    ),
+    Option("depth_k", "float", "bini's sharpness k (> 0): larger keeps more jumps", DEFAULT_DEPTH_K),
+    Option("fx", "float", "perspective depth: focal length along x in pixels (with fy, cx, cy; or K.txt)"),
+    Option("fy", "float", "perspective depth: focal length along y in pixels"),
+    Option("cx", "float", "perspective depth: principal point, column in pixels"),
+    Option("cy", "float", "perspective depth: principal point, row in pixels"),
+    Option(
+        "distance",
+        "float",
+        "perspective depth: the object's mean distance from the camera, in the units the depth should "
+        "have (default: relative depth)",
+    ),
 )

@@ -139,7 +139,7 @@ OUTPUT_TABLE: tuple[Output, ...] = (
         "float32",
         np.nan,
         ("y", "x"),
-        "height toward the camera from the normals; NaN outside the mask",
+        "z toward the camera from the normals (orthographic: height in pixels; docs/depth.md); NaN outside",
         made="after",
         preview=True,
         units="pixels",

@@ -10,18 +10,24 @@ from typing import Any
 from maxfs.storage.errors import InvalidInputError
 from maxfs.storage.options import (
     DEFAULT_BOX_FACTOR,
+    DEFAULT_DEPTH_K,
     DEFAULT_MAX_NODES,
     DEFAULT_MILP_TIME_LIMIT,
     MODEL_DEFAULTS,
+    DepthMethod,
     Estimate,
     Model,
     Solver,
+    check_depth_options,
     check_options,
 )
 from maxfs.storage.tiles import DEFAULT_TILE
 
 #: Fields that record what was asked for, not what was used: left out of :meth:`JobParams.digest`.
 REQUEST_FIELDS = frozenset({"eps_request", "response_request"})
+#: Options of the depth made after the run: they change no tile, so they are left out of the digest too
+#: (a store made before they existed keeps its done tiles).
+DEPTH_FIELDS = frozenset({"depth", "depth_k", "fx", "fy", "cx", "cy", "distance"})
 
 
 @dataclass(frozen=True)
@@ -52,6 +58,13 @@ class JobParams:
     drop_bright: float = 0.0
     dequantize: bool = False
     fallback: bool = False
+    depth: str = DepthMethod.LS.value
+    depth_k: float = DEFAULT_DEPTH_K
+    fx: float | None = None
+    fy: float | None = None
+    cx: float | None = None
+    cy: float | None = None
+    distance: float | None = None
 
     @classmethod
     def build(
@@ -71,6 +84,13 @@ class JobParams:
         drop_bright: float | None = None,
         dequantize: bool | None = None,
         fallback: bool | None = None,
+        depth: str | None = None,
+        depth_k: float | None = None,
+        fx: float | None = None,
+        fy: float | None = None,
+        cx: float | None = None,
+        cy: float | None = None,
+        distance: float | None = None,
     ) -> JobParams:
         """Validate user-facing parameters (:func:`storage.options.check_options`, the one
         validator the library, the CLI and HTTP share) and build them. The keywords are the
@@ -103,6 +123,9 @@ class JobParams:
             response=response,
             drop_bright=drop_bright,
         )
+        depth = DepthMethod.LS.value if depth is None else depth
+        depth_k = DEFAULT_DEPTH_K if depth_k is None else depth_k
+        check_depth_options(depth=depth, depth_k=depth_k, fx=fx, fy=fy, cx=cx, cy=cy, distance=distance)
         for name, flag in (("dequantize", dequantize), ("fallback", fallback)):
             if flag is not None and not isinstance(flag, bool):
                 raise InvalidInputError(f"{name} must be true or false, got {flag!r}")
@@ -127,6 +150,13 @@ class JobParams:
             drop_bright=float(d.drop_bright if drop_bright is None else drop_bright),
             dequantize=bool(d.dequantize if dequantize is None else dequantize),
             fallback=bool(d.fallback if fallback is None else fallback),
+            depth=str(depth),
+            depth_k=float(depth_k),
+            **{
+                n: None if v is None else float(v)
+                for n, v in (("fx", fx), ("fy", fy), ("cx", cx), ("cy", cy))
+            },
+            distance=None if distance is None else float(distance),
         )
 
     def with_eps(self, eps: float | Estimate) -> JobParams:
@@ -158,6 +188,10 @@ class JobParams:
             "fallback": self.fallback,
         }
 
+    def depth_options(self) -> dict[str, Any]:
+        """The keywords of :func:`service.research.write_depth` these parameters ask for."""
+        return {n: getattr(self, n) for n in sorted(DEPTH_FIELDS)}
+
     def to_json(self) -> dict[str, Any]:
         return asdict(self)
 
@@ -167,11 +201,11 @@ class JobParams:
 
     def digest(self) -> str:
         """Hash of the parameters that change results (needs a resolved eps): every field
-        but what the user asked for (:data:`REQUEST_FIELDS`), since a resolved eps of 7.0
-        gives the same tiles whether it was asked for or estimated."""
+        but what the user asked for (:data:`REQUEST_FIELDS`) and the depth's (:data:`DEPTH_FIELDS`),
+        since a resolved eps of 7.0 gives the same tiles whether it was asked for or estimated."""
         if self.eps is None:
             raise InvalidInputError("eps is not resolved yet")
-        fields = {k: v for k, v in self.to_json().items() if k not in REQUEST_FIELDS}
+        fields = {k: v for k, v in self.to_json().items() if k not in REQUEST_FIELDS | DEPTH_FIELDS}
         blob = json.dumps(fields, sort_keys=True).encode()
         return hashlib.sha256(blob).hexdigest()[:16]
 

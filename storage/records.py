@@ -106,36 +106,45 @@ class JobRecord:
     tiles_done: int = 0
     pixels_total: int = 0  # pixels inside the mask
     pixels_done: int = 0  # ... in finished tiles
+    pixels_running: int = 0  # ... solved so far in tiles still running (progress inside a tile)
     certified_pixels: int = 0  # ... that got a normal whose optimum was proved
     solved_pixels: int = 0  # ... that got a normal
     pixel_rate: float | None = None  # pixels per second in this run
     eps: float | None = None
     owner_uid: str = ""  # the owner's token identity (storage.tokens): a re-created name is someone else
     label: str | None = None  # the client's name for the submission (maxfs submit resumes by it)
+    name: str | None = None  # what people call the job: the dataset folder's name unless given
     uploaded_images: list[int] = field(default_factory=list)  # indices of the images stored, before start
 
     @property
     def solved_share(self) -> float | None:
-        """Share of the finished masked pixels that got a normal."""
-        return self.solved_pixels / self.pixels_done if self.pixels_done else None
+        """Share of all masked pixels that got a normal: pixels of unfinished tiles (a cancelled
+        or failed job) count as not solved, so a job stopped early never reads as complete."""
+        return self.solved_pixels / self.pixels_total if self.pixels_done else None
 
     @property
     def certified_share(self) -> float | None:
-        """Share of the finished masked pixels with a normal whose optimum was proved
-        (never for ``l2``, which proves nothing)."""
-        return self.certified_pixels / self.pixels_done if self.pixels_done else None
+        """Share of all masked pixels with a normal whose optimum was proved (never for ``l2``,
+        which proves nothing); unfinished pixels count as not certified."""
+        return self.certified_pixels / self.pixels_total if self.pixels_done else None
+
+    @property
+    def unfinished_pixels(self) -> int:
+        """Masked pixels in tiles not computed (yet)."""
+        return max(self.pixels_total - self.pixels_done, 0)
 
     @property
     def eta_seconds(self) -> float | None:
         """Seconds left at this run's pixel rate (active jobs only)."""
         if not (self.pixel_rate and self.state.active):
             return None
-        return max(self.pixels_total - self.pixels_done, 0) / self.pixel_rate
+        return max(self.pixels_total - self.pixels_done - self.pixels_running, 0) / self.pixel_rate
 
     def warnings(self) -> list[str]:
         """What a user must hear about a result that is technically complete."""
         out = []
-        share = self.solved_share
+        # of the finished pixels: unfinished ones are not a sign of a bad result
+        share = self.solved_pixels / self.pixels_done if self.pixels_done else None
         if share is not None and share < LOW_SOLVED_SHARE:
             out.append(
                 f"only {share:.1%} of the {self.pixels_done} masked pixels got a normal: most pixels have "

@@ -100,9 +100,56 @@ def test_submit_options_cancel_start_wait_fetch_and_delete(
     assert (p.solver, p.model, p.tile, p.eps, p.shadow) == ("milp", "paper", 16, 1.0, 2.0)
     assert (p.max_nodes, p.milp_time_limit, p.fallback) == (5000, 5.0, False)
     assert got.done_grid().all() and np.isfinite(got.read_output("normal")[s.mask]).mean() > 0.9
+    # fetching into an existing folder: refused, unless --overwrite (and only over maxfs results)
+    r = _maxfs("fetch", job_id, *url, "-o", str(tmp_path / "out.zarr"))
+    assert r.returncode == 2 and "already exists" in r.stderr and "--overwrite" in r.stderr, r.stderr
+    r = _maxfs("fetch", job_id, *url, "-o", str(tmp_path / "out.zarr"), "--overwrite")
+    assert r.returncode == 0 and JobStore.open(tmp_path / "out.zarr", mode="r").done_grid().all(), r.stderr
+    (tmp_path / "mine").mkdir()
+    (tmp_path / "mine" / "notes.txt").write_text("keep")
+    r = _maxfs("fetch", job_id, *url, "-o", str(tmp_path / "mine"), "--overwrite")
+    assert r.returncode == 2 and "other than maxfs results" in r.stderr
+    assert (tmp_path / "mine" / "notes.txt").read_text() == "keep"
 
     r = _maxfs("delete", job_id, *url)
     assert r.returncode == 0 and "deleted" in r.stderr, r.stderr
     assert not (server.data / "jobs" / job_id).exists()
     r = _maxfs("status", job_id, *url)
     assert r.returncode == 2 and "Traceback" not in r.stderr
+
+
+def test_named_jobs_reuse_and_two_submits_of_one_folder(
+    tmp_path: Path, server_factory: Callable[..., Server]
+) -> None:
+    """A job is called by its folder's name (or --name) in ``jobs`` and ``status``; two submits of
+    one folder at once both end with the job's outcome; an identical submit after it is done is
+    refused with the job's id, and ``--reuse`` returns that job."""
+    import concurrent.futures
+
+    import httpx
+
+    s = synthetic.sphere(8, 24, specular=0.0)
+    folder = write_npy_folder(tmp_path / "bear", s.images.astype(np.uint8), s.lights, s.mask)
+    server = server_factory(workers=1, graceful=True)
+    url = ["--server", server.url]
+    with concurrent.futures.ThreadPoolExecutor(2) as pool:
+        runs = list(pool.map(lambda _: _maxfs("submit", str(folder), *url, "--eps", "1", "--wait"), range(2)))
+    for r in runs:
+        assert r.returncode == 0 and " done " in r.stdout, (r.stdout, r.stderr)
+    ids = {r.stdout.split()[0] for r in runs}
+    jobs = json.loads(_maxfs("jobs", *url, "--json").stdout)
+    assert {j["id"] for j in jobs} == ids and all(j["name"] == "bear" for j in jobs)
+    job_id = sorted(ids)[0]
+    r = _maxfs("status", job_id, *url)
+    assert r.stdout.startswith(f"{job_id}  bear  done"), r.stdout
+
+    r = _maxfs("submit", str(folder), *url, "--eps", "1")
+    assert r.returncode == 2 and "already has results for these inputs" in r.stderr and "--reuse" in r.stderr
+    assert "(bear)" in r.stderr
+    r = _maxfs("submit", str(folder), *url, "--eps", "1", "--reuse")
+    assert r.returncode == 0 and r.stdout.strip() in ids
+    r = _maxfs("submit", str(folder), *url, "--eps", "2", "--name", "bear eps 2", "--wait")
+    assert r.returncode == 0 and r.stdout.split()[0] not in ids  # other parameters: a new job
+    assert "bear eps 2" in _maxfs("jobs", *url).stdout
+    who = httpx.get(server.url + "/jobs", timeout=30).headers["X-Maxfs-User"]
+    assert who == "no sign-in (auth is off)"

@@ -162,6 +162,7 @@ def server(cluster: DaskCluster, module_server_factory, tmp_path_factory: pytest
         "MAXFS_UPLOAD_IDLE_TIMEOUT": "2",
         "MAXFS_MAX_UPLOADS_PER_USER": "4",
         "MAXFS_TILE_RETRIES": "0",
+        "MAXFS_MAX_DOWNLOADS_PER_USER": "10",  # the stalled-download test holds 10 at once
         "TMPDIR": str(tmp / "t"),
     }
     s = module_server_factory(tmp / "data", cluster.address, logs=tmp, auth=True, env=env)

@@ -20,7 +20,16 @@ from maxfs.worker import synthetic
 from tests.procs import poll_until
 
 MAXFS = str(Path(sys.executable).parent / "maxfs")
-ARRAYS = ("normal", "albedo", "inliers", "inlier_count", "optimal", "tile_stats", "done", "input_digests")
+ARRAYS = (
+    "normal",
+    "albedo",
+    "inliers",
+    "inlier_count",
+    "optimal",
+    "tiles/tile_stats",
+    "tiles/done",
+    "inputs/input_digests",
+)
 
 
 def _phases(stderr: str) -> list[str]:
@@ -124,43 +133,6 @@ def test_ctrl_c_prints_one_line_and_the_same_command_resumes(tmp_path: Path) -> 
     assert JobStore.open(tmp_path / "out", mode="r").done_grid().all()
 
 
-def test_loading_the_kernels_tells_of_a_compile_and_keeps_quiet_otherwise(monkeypatch) -> None:
-    """Only a load that takes long (a compile after an install) is announced, once, while it
-    runs; a fast load says nothing, and an error reaches the run."""
-    import maxfs.worker.task as task
-
-    said: list[str] = []
-
-    def slow_load() -> bool:
-        poll_until(lambda: said, 5.0, "the slow-load note while loading")
-        return True
-
-    monkeypatch.setattr(task, "warm_up", slow_load)
-    assert task.load_kernels(on_slow=lambda: said.append("compiling"), slow=0.05) >= 0.05
-    time.sleep(0.1)
-    assert said == ["compiling"]
-
-    monkeypatch.setattr(task, "warm_up", lambda: True)
-    task.load_kernels(on_slow=lambda: said.append("again"), slow=0.3)
-    time.sleep(0.5)
-    assert said == ["compiling"]
-
-    def broken() -> bool:
-        raise RuntimeError("no compiler")
-
-    monkeypatch.setattr(task, "warm_up", broken)
-    with pytest.raises(RuntimeError, match="no compiler"):
-        task.load_kernels(on_slow=lambda: said.append("late"), slow=0.3)
-    time.sleep(0.5)
-    assert said == ["compiling"]
-
-
-def test_maxfs_warm_says_the_kernels_are_ready() -> None:
-    out = subprocess.run([MAXFS, "warm"], capture_output=True, text=True, timeout=600)
-    assert out.returncode == 0, out.stderr
-    assert out.stdout.startswith("solver kernels ready: ") and " in " in out.stdout
-
-
 def test_a_failed_kernel_load_leaves_the_verdict_to_the_tiles(tmp_path: Path, monkeypatch) -> None:
     """The up-front load is an optimisation: if it fails, the run goes on and its tiles (which
     load the kernels again) decide, so a failure ends as a failed job with a reason, not a crash."""
@@ -173,7 +145,7 @@ def test_a_failed_kernel_load_leaves_the_verdict_to_the_tiles(tmp_path: Path, mo
     sc = synthetic.bump_scene(8, 32, seed=1)
     folder = write_npy_folder(tmp_path / "in", sc.images.astype(np.uint8), sc.lights, sc.mask)
 
-    def broken(on_slow=None, slow=3.0) -> float:
+    def broken(on_compile=None, **kw) -> float:
         raise RuntimeError("no compiler")
 
     monkeypatch.setattr(task, "load_kernels", broken)

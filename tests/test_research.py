@@ -107,13 +107,20 @@ def test_eval_cli_matches_an_independent_computation(tmp_path: Path) -> None:
     for t in (5, 10, 15, 20):
         assert got["under"][str(t)] == pytest.approx((ang < t).mean(), abs=1e-12)
     assert 2 < got["mean_deg"] < 15
-    png = store.path / "previews" / "angular_error.png"
-    assert png.stat().st_size > 1000 and json.loads((store.path / "maxfs-eval.json").read_text()) == got
+    name = f"{tmp_path.name}-Normal_gt"  # files named after the ground truth's folder and file
+    png = store.path / "previews" / f"angular_error-{name}.png"
+    first = store.path / f"maxfs-eval-{name}.json"
+    assert png.stat().st_size > 1000 and json.loads(first.read_text()) == got
 
-    # the human form, and the same numbers from an NPY and a 16-bit (n+1)/2 PNG ground truth
+    # the human form, with the unsolved share beside the mean (left out of it), and the same
+    # numbers from an NPY and a 16-bit (n+1)/2 PNG ground truth
     r = _maxfs("eval", str(store.path), "--gt", str(tmp_path / "Normal_gt.mat"))
-    assert r.returncode == 0 and f"mean {ang.mean():.3f} deg" in r.stdout
+    unsolved = f"{9 / gt_mask.sum():.1%} unsolved, not in the mean"
+    assert r.returncode == 0 and f"mean {ang.mean():.3f} deg ({unsolved})" in r.stdout, r.stdout
     np.save(tmp_path / "gt.npy", gt_n)
+    r = _maxfs("eval", str(store.path), "--gt", str(tmp_path / "gt.npy"))  # a second ground truth
+    assert r.returncode == 0 and (store.path / f"maxfs-eval-{tmp_path.name}-gt.json").exists()
+    assert json.loads(first.read_text()) == got  # the first one's numbers are still there
     ev, _ = evaluate(est32, load_ground_truth(tmp_path / "gt.npy"))
     assert abs(ev.mean_deg - ang.mean()) < 1e-4
     q = np.where(gt_mask[..., None], np.round((gt_n + 1) / 2 * 65535), 0).astype(np.uint16)
@@ -193,12 +200,22 @@ def test_export_cli_writes_images_arrays_and_a_mesh_that_trimesh_reads_back(tmp_
     out = tmp_path / "out-export"
     normal = np.load(out / "normal.npy")
     np.testing.assert_array_equal(normal, store.read_output("normal"))
-    png = read_image(out / "normal.png")
+    png = read_image(out / "normal16.png")
     assert png.dtype == np.uint16 and png.shape == (40, 40, 3)
     ok = np.isfinite(normal[..., 0])
     # (n + 1) / 2 in all three channels, nz included
     np.testing.assert_allclose(png[ok] / 65535.0 * 2 - 1, normal[ok], atol=2e-5)
     assert not png[~ok].any()
+    # normal.png is what readers expect: 8-bit RGB, as Pillow opens it
+    from PIL import Image
+
+    with Image.open(out / "normal.png") as im:
+        assert im.mode == "RGB" and im.size == (40, 40)
+        eight = np.asarray(im)
+    np.testing.assert_allclose(eight[ok] / 255.0 * 2 - 1, normal[ok], atol=1 / 255 + 1e-6)  # half a step
+    # albedo.npy is the store's grey albedo (a grey store has no albedo_rgb)
+    np.testing.assert_array_equal(np.load(out / "albedo.npy"), store.read_output("albedo"))
+    assert not (out / "albedo_rgb.npy").exists()
     np.testing.assert_array_equal(tifffile.imread(out / "normal.tiff"), normal)
     depth = np.load(out / "depth.npy")
     assert depth.dtype == np.float32 and (np.isfinite(depth) == ok).all()
@@ -257,15 +274,24 @@ def test_xarray_opens_a_job_store_with_named_dimensions(tmp_path: Path, channels
     assert ds["normal"].dims == ("y", "x", "xyz") and ds.sizes["xyz"] == 3
     assert ds["inliers"].dims == ("image", "y", "x") and ds.sizes["image"] == k
     assert ds["lights"].dims == ("image", "xyz")
+    # coordinates: the normal's components and channels by name, images numbered from 1
+    assert list(ds["xyz"].values) == ["x", "y", "z"] and list(ds["image"].values) == list(range(1, k + 1))
+    assert ds["normal"].sel(xyz="z").dims == ("y", "x")
+    assert list(ds["channel"].values) == (["grey"] if channels is None else ["r", "g", "b"])
+    # only results: the input stack and the tile bookkeeping are in subgroups, still one call away
+    assert not {"images", "uploaded", "input_digests", "done", "tile_stats"} & set(ds.variables)
+    inputs = xr.open_zarr(store.path / "results.zarr", group="inputs", consolidated=False)
+    tiles = xr.open_zarr(store.path / "results.zarr", group="tiles", consolidated=False)
+    assert "done" in tiles and "tile_stats" in tiles and "uploaded" in inputs
     if channels is None:
-        assert ds["images"].dims == ("image", "y", "x") and "albedo_rgb" not in ds
+        assert inputs["images"].dims == ("image", "y", "x") and "albedo_rgb" not in ds
         assert ds["depth"].dims == ("y", "x") and ds["depth"].attrs["units"] == "pixels"
         assert "residual_rms" in ds["depth"].attrs
         np.testing.assert_array_equal(ds["normal"].values, store.read_output("normal"))
         np.testing.assert_array_equal(ds["albedo"].values, store.read_output("albedo"))  # 0 stays 0
         assert ds["inlier_count"].dtype == np.uint16
     else:
-        assert ds["images"].dims == ("image", "y", "x", "channel") and ds.sizes["channel"] == 3
+        assert inputs["images"].dims == ("image", "y", "x", "channel") and ds.sizes["channel"] == 3
         assert ds["albedo_rgb"].dims == ("y", "x", "channel")
     assert "long_name" in ds["normal"].attrs
     assert ds.attrs["k"] == k and ds.attrs["params"]["tile"] == store.params.tile

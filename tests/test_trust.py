@@ -72,7 +72,7 @@ def test_changed_image_content_is_refused_and_unchanged_inputs_resume(tmp_path: 
     images[5, 10, 10] ^= 1  # one value of one image: same shape, lights and mask
     np.save(folder / "images.npy", images)
     r = _maxfs("run", str(folder), "-o", str(out), "--eps", "1")
-    assert r.returncode == 2 and "image 5 first" in r.stderr and "--overwrite" in r.stderr
+    assert r.returncode == 2 and "image 6 first" in r.stderr and "--overwrite" in r.stderr
     (tmp_path / "other").mkdir()
     (tmp_path / "other" / "notes.txt").write_text("mine")
     r = _maxfs("run", str(folder), "-o", str(tmp_path / "other"), "--eps", "1")
@@ -160,7 +160,7 @@ def test_mask_cut_short_by_a_killed_server_is_never_used(
 
         def writing() -> bool:
             row = np.asarray(
-                zarr.open_group(store / "results.zarr", mode="r")["input_digests"][images.shape[0]]
+                zarr.open_group(store / "results.zarr", mode="r")["inputs/input_digests"][images.shape[0]]
             )
             return bytes(row) == MASK_WRITING
 
@@ -198,7 +198,8 @@ def test_results_of_an_unfinished_job_say_so_and_fetch_refuses_them(
         r = http.delete(f"/jobs/{jid}")
         assert r.status_code == 200, r.text
         st = http.get(f"/jobs/{jid}").json()
-        assert st["state"] == "cancelled" and st["results"] == {"available": True, "partial": True}
+        assert st["state"] == "cancelled" and st["results"]["available"] and st["results"]["partial"]
+        assert st["results"]["resumable"] and st["results"]["note"].startswith(("Partial", "No results"))
         assert http.get(f"/jobs/{jid}/results/normal.npy").headers["x-maxfs-partial"] == "true"
     env = ["--server", server.url]
     r = _maxfs("fetch", jid, "-o", str(tmp_path / "got.zarr"), *env)
@@ -207,10 +208,12 @@ def test_results_of_an_unfinished_job_say_so_and_fetch_refuses_them(
     r = _maxfs("fetch", jid, "-o", str(tmp_path / "got.zarr"), "--partial", *env)
     assert r.returncode == 0, r.stderr
     assert (tmp_path / "got.zarr" / "results.zarr" / "zarr.json").exists()
-    assert not (tmp_path / "got.zarr" / "results.zarr" / "images").exists()  # results only
+    assert not (tmp_path / "got.zarr" / "results.zarr" / "inputs" / "images").exists()  # results only
     assert (tmp_path / "got.zarr" / "maxfs-job.json").exists()
     r = _maxfs("fetch", jid, "-o", str(tmp_path / "all"), "--partial", "--inputs", *env)
-    assert r.returncode == 0 and (tmp_path / "all" / "results.zarr" / "images" / "zarr.json").exists()
+    assert (
+        r.returncode == 0 and (tmp_path / "all" / "results.zarr" / "inputs" / "images" / "zarr.json").exists()
+    )
     server.kill()
     shutil.rmtree(tmp_path / "data", ignore_errors=True)
 

@@ -291,14 +291,14 @@ NPY = "application/octet-stream"  # NPY has no registered media type
 #: Every operation: the statuses it documents (besides its success) and its success status and media type.
 OPERATIONS = {
     ("post", "/jobs"): ({401, 413, 422, 429, 507}, "201", "application/json"),
-    ("get", "/jobs"): ({401}, "200", "application/json"),
+    ("get", "/jobs"): ({401, 422}, "200", "application/json"),
     ("get", "/jobs/{job_id}"): ({401, 404, 422}, "200", "application/json"),
     ("delete", "/jobs/{job_id}"): ({401, 404, 409, 422}, "200", "application/json"),
     ("put", "/jobs/{job_id}/images/{index}"): ({401, 404, 409, 413, 422, 507}, "200", "application/json"),
     ("put", "/jobs/{job_id}/mask"): ({401, 404, 409, 413, 422}, "200", "application/json"),
     ("post", "/jobs/{job_id}/start"): ({401, 404, 409, 422, 429}, "202", "application/json"),
-    ("get", "/jobs/{job_id}/results.zip"): ({401, 404, 409, 422}, "200", "application/zip"),
-    ("get", "/jobs/{job_id}/results/{name}.npy"): ({401, 404, 409, 413, 422}, "200", NPY),
+    ("get", "/jobs/{job_id}/results.zip"): ({401, 404, 409, 422, 429}, "200", "application/zip"),
+    ("get", "/jobs/{job_id}/results/{name}.npy"): ({401, 404, 409, 413, 422, 429}, "200", NPY),
     ("get", "/jobs/{job_id}/previews/{name}.png"): ({401, 404, 409, 422}, "200", "image/png"),
     ("get", "/health"): (set(), "200", "application/json"),
 }

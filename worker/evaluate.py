@@ -71,7 +71,9 @@ def load_ground_truth(path: Path | str) -> GroundTruth:
             )
         return _from_vectors(m[cands[0]], str(path))
     if suffix == ".npy":
-        return _from_vectors(np.load(path, allow_pickle=False), str(path))
+        from maxfs.storage.imageio import load_npy
+
+        return _from_vectors(load_npy(path, f"ground truth {path}"), str(path))
     from maxfs.storage.imageio import read_image
 
     img = read_image(path)
@@ -120,10 +122,15 @@ class Evaluation:
 
     def summary(self) -> str:
         under = ", ".join(f"<{k} deg {v:.1%}" for k, v in self.under.items())
-        miss = f", {self.missing} without a normal" if self.missing else ""
+        # the mean is over solved pixels only: a run that leaves more unsolved looks better by it
+        unsolved = (
+            f" ({self.missing / self.pixels:.1%} unsolved, not in the mean)"
+            if self.missing and self.pixels
+            else ""
+        )
         return (
-            f"angular error over {self.evaluated} of {self.pixels} ground-truth pixels{miss}: "
-            f"mean {self.mean_deg:.3f} deg, median {self.median_deg:.3f} deg; {under}"
+            f"angular error over {self.evaluated} of {self.pixels} ground-truth pixels: "
+            f"mean {self.mean_deg:.3f} deg{unsolved}, median {self.median_deg:.3f} deg; {under}"
         )
 
 

@@ -172,12 +172,18 @@ def saturation_vector(k: int, saturation: float | ArrayLike | None) -> NDArray[n
     return sat
 
 
+#: Largest intensity used as an observation: above it a value is treated like a saturated one
+#: (a float32 pixel near its maximum, 3e38, solved to an albedo of +inf once scaled).
+MAX_INTENSITY = 1e30
+
+
 def usable(images: NDArray[np.floating], th: Thresholds) -> NDArray[np.bool_]:
-    """Observations that may be inliers: finite, above shadow, below saturation.
+    """Observations that may be inliers: finite, above shadow, below saturation and
+    :data:`MAX_INTENSITY`.
 
     ``images`` has the image axis first: ``(k, ...)``.
     """
-    sat = th.saturation.reshape((-1,) + (1,) * (images.ndim - 1))
+    sat = np.minimum(th.saturation, MAX_INTENSITY).reshape((-1,) + (1,) * (images.ndim - 1))
     with np.errstate(invalid="ignore"):
         return np.isfinite(images) & (images > th.shadow) & (images < sat)
 

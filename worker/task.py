@@ -25,6 +25,8 @@ from maxfs.worker.cancel import TileCancelled, cancel_points
 from maxfs.worker.problem import make_thresholds
 from maxfs.worker.solve import estimate_job, solve_tile
 
+#: Seconds between two progress notes of a running tile (its solved pixels so far).
+PROGRESS_SECONDS = 1.0
 
 class TileStatus(StrEnum):
     """How a tile task ended."""
@@ -104,7 +106,12 @@ def compute_tile(
         return None
 
     try:
-        with cancel_points(stop_reason):
+        active = int(mask.sum())
+
+        def report(done: int, total: int) -> None:
+            store.note_tile_progress(tile_index, active * done // total)
+
+        with cancel_points(stop_reason, report=report, report_interval=PROGRESS_SECONDS):
             res = solve_tile(
                 raw,
                 spec.lights,
@@ -116,11 +123,13 @@ def compute_tile(
                 milp_time_limit=params.milp_time_limit,
             )
     except TileCancelled as e:
+        store.clear_tile_progress(tile_index)
         store.log_run(tile_index, str(e))
         return TileOutcome(tile_index, TileStatus(str(e)), pixels=mask.size)
     solved = np.isfinite(res.normal[..., 0]) & mask
     stats = (int(mask.sum()), int(solved.sum()), int((res.optimal & solved).sum()))
     store.write_tile(t, res.outputs(), token, stats)
+    store.clear_tile_progress(tile_index)
     store.log_run(tile_index, "done")
     return TileOutcome(
         tile_index,
@@ -171,26 +180,60 @@ def warm_up() -> bool:
     return True
 
 
-#: A kernel load slower than this is a compile (a cache load takes 0.7 s, a compile 15-30 s).
-SLOW_LOAD_SECONDS = 3.0
+@dataclass(frozen=True)
+class KernelLoad:
+    """How :func:`load_kernels` went: its seconds, and whether numba compiled (a cache miss)."""
+
+    seconds: float
+    compiled: bool
 
 
-def load_kernels(on_slow: Callable[[], None] | None = None, slow: float = SLOW_LOAD_SECONDS) -> float:
-    """:func:`warm_up` in this thread, before a run's first tile; returns the seconds it took.
+def kernel_dispatchers(module: object | None = None) -> list:
+    """The numba dispatchers (``@njit`` functions) of ``module`` (default: :mod:`worker.exact`)."""
+    from numba.core.registry import CPUDispatcher
 
-    ``on_slow`` is called once, from a timer thread, if it takes over ``slow`` seconds: then the
-    kernels are being compiled (the first run after an install), which a user should be told
-    about rather than see a first tile that takes 20 s. Not on a thread beside the decoding or
-    the eps estimate: on 2 cores that cost more than it hid (the cache load holds the GIL for
-    much of its 0.7 s; bench.phases: 0.6 s slower in the median of 4 interleaved runs)."""
-    timer = threading.Timer(slow, on_slow) if on_slow else None
+    if module is None:
+        from maxfs.worker import exact as module
+    return [f for f in vars(module).values() if isinstance(f, CPUDispatcher)]
+
+
+def cache_misses(dispatchers: list) -> int:
+    """Compiles so far of ``dispatchers`` in this process: numba counts a miss of its on-disk
+    cache, per signature, right before it compiles one (``Dispatcher.stats.cache_misses``)."""
+    return sum(sum(d.stats.cache_misses.values()) for d in dispatchers)
+
+
+def load_kernels(
+    on_compile: Callable[[], None] | None = None,
+    *,
+    dispatchers: list | None = None,
+    load: Callable[[], object] | None = None,
+    poll: float = 0.2,
+) -> KernelLoad:
+    """:func:`warm_up` (or ``load``) in this thread, before a run's first tile.
+
+    Whether it compiles is read from numba's own cache statistics of ``dispatchers`` (default:
+    :func:`kernel_dispatchers`), not from the time it takes: a cache load on a busy machine can
+    be slow, a compile is a cache miss. ``on_compile`` is called once, from a watcher thread,
+    as soon as the first miss shows (the first run after an install, about 20 s), so the user
+    is told while it happens. Not on a thread beside the decoding or the eps estimate: on 2
+    cores that cost more than it hid (the cache load holds the GIL for much of its 0.7 s)."""
+    ds = kernel_dispatchers() if dispatchers is None else dispatchers
+    before = cache_misses(ds)
+    finished = threading.Event()
+
+    def watch() -> None:
+        while not finished.wait(poll):
+            if cache_misses(ds) > before:
+                on_compile()
+                return
+
+    watcher = threading.Thread(target=watch, daemon=True) if on_compile else None
     t0 = time.perf_counter()
-    if timer:
-        timer.daemon = True
-        timer.start()
+    if watcher:
+        watcher.start()
     try:
-        warm_up()
+        (load or warm_up)()
     finally:
-        if timer:
-            timer.cancel()
-    return time.perf_counter() - t0
+        finished.set()
+    return KernelLoad(time.perf_counter() - t0, cache_misses(ds) > before)

@@ -112,8 +112,9 @@ class MaxfsClient:
         (:meth:`status` gives the body as a dict)."""
         return JobStatus.model_validate(self.status(job_id))
 
-    def jobs(self) -> list[dict[str, Any]]:
-        return self._call("GET", "/jobs").json()
+    def jobs(self, mine: bool = False) -> list[dict[str, Any]]:
+        """The jobs this token may see (an admin's: everyone's), or with ``mine`` only its own."""
+        return self._call("GET", "/jobs", params={"mine": "true"} if mine else None).json()
 
     def job_list(self) -> list[JobStatus]:
         """The jobs this token may see, oldest first, as typed models (:meth:`jobs`: as dicts)."""
@@ -149,16 +150,27 @@ class MaxfsClient:
         r = self._call("GET", f"/jobs/{job_id}/results/{name}.npy")
         return np.load(io.BytesIO(r.content), allow_pickle=False)
 
-    def fetch_zarr(self, job_id: str, out: Path, *, partial: bool = False, inputs: bool = False) -> Path:
+    def fetch_zarr(
+        self, job_id: str, out: Path, *, partial: bool = False, inputs: bool = False, overwrite: bool = False
+    ) -> Path:
         """Download the job's results (a zip) and unpack them as the job folder ``out``
         (``out/results.zarr``, previews, record; the input stack only if ``inputs``).
 
         A job that is not done has partial results (unfinished tiles hold fill values):
         they are refused unless ``partial`` (use :meth:`wait` first to get complete ones).
+        An existing ``out`` is replaced only with ``overwrite``, and only if it holds maxfs results
+        (or nothing): the old folder goes once the new one is complete.
         """
+        from maxfs.storage.layout import is_job_folder
+
         out = Path(out)
         if out.exists():
-            raise ConflictError(f"{out} already exists; choose a new output path")
+            if not overwrite:
+                raise ConflictError(
+                    f"{out} already exists; choose a new output folder, or add --overwrite to replace it"
+                )
+            if not out.is_dir() or (any(out.iterdir()) and not is_job_folder(out)):
+                raise ConflictError(f"{out} holds something other than maxfs results; it is not replaced")
         if not partial:
             st = self.status(job_id)
             if st["state"] != JobState.DONE:
@@ -188,23 +200,45 @@ class MaxfsClient:
                         if name.startswith("/") or ".." in Path(name).parts:
                             raise MaxfsError(f"refusing unsafe path {name!r} in the archive")
                     zf.extractall(staging)
-                staging.rename(out)
+                if out.exists():  # --overwrite: the old results go only now that the new ones are here
+                    old = staging.with_name(staging.name + "-old")
+                    out.rename(old)
+                    staging.rename(out)
+                    shutil.rmtree(old, ignore_errors=True)
+                else:
+                    staging.rename(out)
             except BaseException:
                 shutil.rmtree(staging, ignore_errors=True)
                 raise
         return out
 
-    def submit_folder(self, folder: Path | Dataset, **params: Any) -> str:
+    def submit_folder(
+        self,
+        folder: Path | Dataset,
+        *,
+        name: str | None = None,
+        existing: str = "new",
+        on_upload: Callable[[int, int], None] | None = None,
+        **params: Any,
+    ) -> str:
         """Create a job from a dataset folder (or an opened :class:`Dataset`, e.g. a selection of its
-        images), stream its images one by one, start it.
+        images), stream its images one by one, start it. ``name`` (default: the folder's name) is
+        how the job is shown; ``on_upload(sent, k)`` is called after each image.
 
         Only one decoded image is in memory at a time (NPY stacks are read one image at a time).
 
         **Resumable**: the job is labelled with a digest of the folder's files (paths, sizes,
         times), the selection and the parameters. If this user already has an unfinished job with
         that label (a submit cut short), it is continued: only its missing images are sent, then
-        it is started; one that is already queued or running is just returned.
+        it is started; one that is already queued or running is just returned. Two submits of one
+        folder at once both return the job that runs, whichever of them started it.
+
+        A *finished* job with that label (the same inputs and parameters, done) is, by ``existing``:
+        ``"new"`` ignored (a new job), ``"reuse"`` returned, ``"refuse"`` a :class:`ConflictError`
+        naming it (``maxfs submit`` without ``--reuse``: no silent re-upload and recompute).
         """
+        if existing not in ("new", "reuse", "refuse"):
+            raise ValueError(f"existing must be new, reuse or refuse, got {existing!r}")
         ds = folder if isinstance(folder, Dataset) else load_folder(folder)
         meta: dict[str, Any] = {
             "k": ds.k,
@@ -217,22 +251,42 @@ class MaxfsClient:
             **{k: v for k, v in params.items() if v is not None},
         }
         label = submission_label(ds, meta)
-        found = None
-        if label is not None:
-            found = next(
-                (j for j in self.jobs() if j.get("label") == label and j["state"] not in FINAL_STATES), None
+        # only this user's own jobs: an admin's list holds everyone's, and a job of another user
+        # with the same label (the same folder) is not this submit's
+        jobs = self.jobs(mine=True) if label is not None else []
+        found = next((j for j in jobs if j.get("label") == label and j["state"] not in FINAL_STATES), None)
+        done = next(
+            (j for j in reversed(jobs) if j.get("label") == label and j["state"] == JobState.DONE), None
+        )
+        if found is None and done is not None and existing != "new":
+            if existing == "reuse":
+                return done["id"]
+            raise ConflictError(
+                f"job {done['id']} ({done.get('name') or 'unnamed'}) already has results for these inputs "
+                f"and parameters; use it (--reuse, or `maxfs fetch {done['id']} -o FOLDER`), or delete it "
+                "to compute again"
             )
         if found is not None and found["state"] in (JobState.QUEUED, JobState.RUNNING):
             return found["id"]
         if found is None:
-            job_id = self.create_job(**meta, label=label)["id"]
+            job_id = self.create_job(**meta, label=label, name=name or ds.name)["id"]
             missing: list[int] = list(range(ds.k))
         else:
             job_id = found["id"]
             missing = list(self.status(job_id).get("missing_images", range(ds.k)))
-        for i in missing:
-            self.upload_image(job_id, i, ds.read(i))
-        if ds.mask is not None:
-            self.upload_mask(job_id, ds.mask)
-        self.start(job_id)
+        try:
+            sent = ds.k - len(missing)
+            for i in missing:
+                self.upload_image(job_id, i, ds.read(i))
+                sent += 1
+                if on_upload:
+                    on_upload(sent, ds.k)
+            if ds.mask is not None:
+                self.upload_mask(job_id, ds.mask)
+            self.start(job_id)
+        except ConflictError:
+            # another submit of the same folder finished the uploads and started it first
+            if self.status(job_id)["state"] not in (JobState.CREATED, JobState.UPLOADING):
+                return job_id  # whatever it ends as, it is this submit's job too (wait reports it)
+            raise
         return job_id

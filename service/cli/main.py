@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import argparse
+import difflib
 import os
 import sys
+import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -13,13 +15,25 @@ from maxfs.service.cli.common import EXIT_NOT_DONE, EXIT_SERVER, EXIT_STATUSES, 
 from maxfs.service.cli.common import make_client as _client
 from maxfs.service.settings import LOOPBACK, Settings, cluster_settings, runs_in_process
 from maxfs.storage.errors import ConflictError, InvalidInputError, MaxfsError
-from maxfs.storage.options import SOLVE_OPTIONS
+from maxfs.storage.options import INTRINSICS, SOLVE_OPTIONS
+from maxfs.storage.params import DEPTH_FIELDS
 from maxfs.storage.records import JobState
 from maxfs.storage.tokens import TokenStore
 
 #: Exit statuses: 1 a job ended without being done (``run``, ``demo``, ``wait``); 2 usage or bad
 #: input (argparse's own, and every refusal that is the request's fault: a 4xx answer, a bad folder);
 #: 3 the server failed (a 5xx answer) or cannot be reached.
+#: When this process started (near enough: the ``maxfs`` script imports this module first), for
+#: the wall time a user waited, as ``done: ... in X s`` says.
+STARTED = time.monotonic()
+
+
+#: What ``-o`` of ``run`` is, and the STORE of ``eval``/``export``: one folder, said one way.
+OUTPUT_HELP = (
+    "output folder: it holds results.zarr/ (the arrays), previews/ and maxfs-job.json; "
+    "running again into it resumes"
+)
+STORE_HELP = "a result folder (the -o of maxfs run or fetch), holding results.zarr/"
 
 
 def _eps(value: str) -> float | str:
@@ -92,8 +106,23 @@ def _server_args(p: argparse.ArgumentParser) -> None:
 
 
 def _params(args: argparse.Namespace) -> dict[str, Any]:
-    """The solve options given (or defaulted) on the command line, by name."""
-    return {o.name: v for o in SOLVE_OPTIONS if (v := getattr(args, o.name, None)) is not None}
+    """The solve options given (or defaulted) on the command line, by name; the camera from the
+    dataset folder's ``K.txt`` when it has one and no intrinsics are given."""
+    from maxfs.service.results.research import folder_camera
+
+    kw = {o.name: v for o in SOLVE_OPTIONS if (v := getattr(args, o.name, None)) is not None}
+    if getattr(args, "folder", None) and not any(n in kw for n in INTRINSICS):
+        kw |= folder_camera(args.folder)
+    return kw
+
+
+def _depth_args(p: argparse.ArgumentParser) -> None:
+    """The depth rows of :data:`storage.options.SOLVE_OPTIONS` as flags that default to the job's."""
+    for o in SOLVE_OPTIONS:
+        if o.name in DEPTH_FIELDS:
+            kw: dict[str, Any] = {"default": None, "help": o.help + " (default: as the job asked)"}
+            kw |= {"choices": list(o.choices)} if o.kind == "choice" else {"type": float}
+            p.add_argument(o.flag, **kw)
 
 
 def _progress() -> Any:
@@ -168,9 +197,10 @@ def cmd_run(args: argparse.Namespace) -> int:
     if rec.state is not JobState.DONE:
         print(f"maxfs: job {rec.state.value}: {rec.error or ''}".rstrip(": "), file=sys.stderr)
         return EXIT_NOT_DONE
-    took = (rec.finished_at or 0) - (rec.started_at or 0)
+    solving = (rec.finished_at or 0) - (rec.started_at or 0)
     print(
-        f"done: {rec.pixels_done} masked pixels in {took:.1f} s, eps={rec.eps:.4g}, "
+        f"done: {rec.pixels_done} masked pixels in {time.monotonic() - STARTED:.1f} s "
+        f"({solving:.1f} s solving), eps={rec.eps:.4g}, "
         f"tile={store.params.tile}; {shares(rec)}; results in {store.path} (previews/ has PNGs)"
     )
     _warn(rec)
@@ -179,11 +209,10 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def shares(rec: Any) -> str:
-    """'solved 99.1 %, certified optimal 98.7 %' for a record (its counts are over masked pixels)."""
-    solved, cert = rec.solved_share, rec.certified_share
-    if solved is None:
-        return "no masked pixel solved"
-    return f"solved {solved:.1%}, certified optimal {cert:.1%}"
+    """'solved 99.1 %, certified optimal 98.7 %' for a record: shares of all masked pixels."""
+    from maxfs.service.cli.verbs import share_words
+
+    return share_words(rec.solved_share, rec.certified_share, rec.unfinished_pixels, rec.pixels_total)
 
 
 def _warn(rec: Any) -> None:
@@ -212,7 +241,15 @@ def cmd_export(args: argparse.Namespace) -> int:
     items = tuple(args.only.split(",")) if args.only else ITEMS
     if args.no_mesh:
         items = tuple(i for i in items if i != "mesh")
-    m = export(args.store, args.output, items=items, mesh_formats=tuple(args.mesh_format.split(",")))
+    depth = {n: v for n in DEPTH_FIELDS if (v := getattr(args, n)) is not None}
+    m = export(
+        args.store,
+        args.output,
+        items=items,
+        mesh_formats=tuple(args.mesh_format.split(",")),
+        jump=args.jump,
+        depth_options=depth,
+    )
     if m["tiles_done"] < m["tiles_total"]:
         print(
             f"maxfs: WARNING: {m['tiles_total'] - m['tiles_done']} of {m['tiles_total']} tiles are not "
@@ -278,11 +315,11 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 
 def cmd_warm(args: argparse.Namespace) -> int:
-    from maxfs.worker.task import SLOW_LOAD_SECONDS, load_kernels
+    from maxfs.worker.task import load_kernels
 
-    took = load_kernels()
-    how = "compiled and cached" if took > SLOW_LOAD_SECONDS else "loaded from the cache"
-    print(f"solver kernels ready: {how} in {took:.1f} s")
+    load = load_kernels()
+    how = "compiled and cached" if load.compiled else "loaded from the cache"
+    print(f"solver kernels ready: {how} in {load.seconds:.1f} s")
     return 0
 
 
@@ -308,6 +345,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
     from maxfs.service.runs.cluster import cluster_kind
 
     cluster_kind(settings)  # an unknown --cluster, or address without a scheduler: refused before starting
+    check_port_free(settings.host, settings.port)  # before the cluster starts, not 30 s later
     if not settings.auth and settings.host not in LOOPBACK:
         raise MaxfsError(
             f"refusing to serve without auth on {settings.host}: anyone who can reach it could read and "
@@ -320,8 +358,12 @@ def cmd_serve(args: argparse.Namespace) -> int:
             f"`maxfs token create NAME --data-dir {settings.data_dir}` (or serve with --no-auth on loopback)",
             file=sys.stderr,
         )
+    from maxfs.service.http.connections import guarded_protocol
+
+    _raise_open_files_limit()
     uvicorn.run(
         create_app(settings),
+        http=guarded_protocol(settings.header_timeout, settings.max_connections_per_client),
         host=settings.host,
         port=settings.port,
         log_level="info",
@@ -330,6 +372,40 @@ def cmd_serve(args: argparse.Namespace) -> int:
         timeout_keep_alive=5,
     )
     return 0
+
+
+def _raise_open_files_limit() -> None:
+    """Raise the soft limit of open files to the hard one: every connection is a file, and the
+    usual soft limit (1024) is below ``MAXFS_MAX_CONNECTIONS`` plus the server's own files."""
+    import resource
+
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    if soft != hard:
+        try:
+            resource.setrlimit(resource.RLIMIT_NOFILE, (hard, hard))
+        except (ValueError, OSError):
+            pass
+
+
+def check_port_free(host: str, port: int) -> None:
+    """Refuse a ``host:port`` that cannot be listened on (another server holds it), by binding
+    it once as uvicorn will (SO_REUSEADDR), before anything slow starts."""
+    import socket
+
+    try:
+        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
+    except socket.gaierror as e:
+        raise InvalidInputError(f"cannot listen on {host}:{port}: {e.strerror}; check --host") from None
+    family, kind, proto, _, addr = infos[0]
+    with socket.socket(family, kind, proto) as sock:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            sock.bind(addr)
+        except OSError as e:
+            raise ConflictError(
+                f"cannot listen on {host}:{port}: {e.strerror}; another server may be running there. "
+                "Stop it, or choose another --port"
+            ) from None
 
 
 def _serve_logging() -> dict:
@@ -354,8 +430,6 @@ def cmd_token(args: argparse.Namespace) -> int:
     overrides = {"data_dir": args.data_dir} if args.data_dir else {}
     tokens = TokenStore(Settings(**overrides).tokens_file)
     if args.action == "create":
-        if not args.name:
-            raise InvalidInputError("give the user's name: maxfs token create NAME")
         token = tokens.create(args.name, admin=args.admin, replace=args.replace)
         print(token)
         print(
@@ -364,8 +438,6 @@ def cmd_token(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
     elif args.action == "revoke":
-        if not args.name:
-            raise InvalidInputError("give the user's name: maxfs token revoke NAME")
         tokens.revoke(args.name)
         print(f"revoked the token of {args.name}", file=sys.stderr)
     else:
@@ -375,10 +447,18 @@ def cmd_token(args: argparse.Namespace) -> int:
 
 
 def cmd_submit(args: argparse.Namespace) -> int:
-    from maxfs.service.cli.verbs import wait_and_report
+    from maxfs.service.cli.verbs import UploadProgress, wait_and_report
 
+    ds = _dataset(args)
     with _client(args) as c:
-        job_id = c.submit_folder(_dataset(args), **_params(args))
+        with UploadProgress(ds.k) as shown:
+            job_id = c.submit_folder(
+                ds,
+                name=args.name,
+                existing="reuse" if args.reuse else "refuse",
+                on_upload=shown.update,
+                **_params(args),
+            )
         print(job_id, flush=True)
         if args.wait:
             return wait_and_report(c, job_id, as_json=False)
@@ -400,7 +480,10 @@ def cmd_fetch(args: argparse.Namespace) -> int:
                     f"job {args.job_id} ended {st['state']}: {st.get('error') or ''}; its results are "
                     "partial (fetch them with --partial)"
                 )
-        print(c.fetch_zarr(args.job_id, Path(args.output), partial=args.partial, inputs=args.inputs))
+        out = c.fetch_zarr(
+            args.job_id, Path(args.output), partial=args.partial, inputs=args.inputs, overwrite=args.overwrite
+        )
+        print(out)
     return 0
 
 
@@ -448,7 +531,7 @@ def parser() -> argparse.ArgumentParser:
     sub = ap.add_subparsers(dest="command", required=True)
     p = sub.add_parser("run", help="run a dataset folder on this machine")
     p.add_argument("folder")
-    p.add_argument("-o", "--output", required=True, help="output job store (a .zarr folder)")
+    p.add_argument("-o", "--output", required=True, help=OUTPUT_HELP)
     _solver_args(p)
     p.add_argument("--scheduler", default=None, help="Dask scheduler address (default: embedded cluster)")
     _cluster_arg(p)
@@ -468,19 +551,31 @@ def parser() -> argparse.ArgumentParser:
     _images_arg(p)
     p.set_defaults(fn=cmd_run)
     p = sub.add_parser("eval", help="angular error of a result against ground-truth normals")
-    p.add_argument("store", help="a job store (OUT.zarr)")
+    p.add_argument("store", help=STORE_HELP)
     p.add_argument("--gt", required=True, help="Normal_gt.mat (DiLiGenT), .npy (H, W, 3) or (n+1)/2 PNG")
     p.add_argument("--max-deg", type=float, default=45.0, help="top of the error map's colour scale")
-    p.add_argument("--map", default=None, help="error map PNG (default: STORE/previews/angular_error.png)")
-    p.add_argument("--json-out", default=None, help="statistics file (default: STORE/maxfs-eval.json)")
+    p.add_argument("--map", default=None, help="error map PNG (default: STORE/previews/angular_error-GT.png)")
+    p.add_argument("--json-out", default=None, help="statistics file (default: STORE/maxfs-eval-GT.json)")
     p.add_argument("--json", action="store_true", help="print the statistics as JSON")
     p.set_defaults(fn=cmd_eval)
     p = sub.add_parser("export", help="write results as PNG/NPY/TIFF images and a PLY/OBJ mesh")
-    p.add_argument("store", help="a job store (OUT.zarr)")
-    p.add_argument("-o", "--output", default=None, help="folder (default: OUT-export beside OUT.zarr)")
+    p.add_argument("store", help=STORE_HELP)
+    p.add_argument(
+        "-o",
+        "--output",
+        default=None,
+        help="folder for the exported files (default: STORE-export beside STORE)",
+    )
     p.add_argument("--only", default=None, help="comma list of normal,albedo,inlier_count,depth,mesh")
     p.add_argument("--no-mesh", action="store_true", help="skip the mesh")
     p.add_argument("--mesh-format", default="ply,obj", help="ply, obj or ply,obj (default)")
+    p.add_argument(
+        "--jump",
+        type=float,
+        default=2.0,
+        help="the mesh is not joined where depth is off its normals by more than this many pixels (2)",
+    )
+    _depth_args(p)
     p.set_defaults(fn=cmd_export)
     p = sub.add_parser("demo", help="make a synthetic dataset and run it")
     p.add_argument("-o", "--output", default="maxfs-demo")
@@ -494,21 +589,40 @@ def parser() -> argparse.ArgumentParser:
     )
     p.set_defaults(fn=cmd_warm)
     p = sub.add_parser("serve", help="run the HTTP server")
-    p.add_argument("--host", default=None)
-    p.add_argument("--port", type=int, default=None)
-    p.add_argument("--data-dir", default=None)
-    p.add_argument("--workers", type=int, default=None)
-    p.add_argument("--scheduler", default=None)
+    p.add_argument("--host", default=None, help="address to listen on (default: MAXFS_HOST, else 127.0.0.1)")
+    p.add_argument("--port", type=int, default=None, help="TCP port (default: MAXFS_PORT, else 8000)")
+    p.add_argument(
+        "--data-dir",
+        default=None,
+        help="folder for jobs and the token file (default: MAXFS_DATA_DIR, else ./maxfs-data)",
+    )
+    p.add_argument(
+        "--workers",
+        type=int,
+        default=None,
+        help="worker processes of the embedded cluster (default: MAXFS_WORKERS, else up to 4)",
+    )
+    p.add_argument("--scheduler", default=None, help="Dask scheduler address (default: embedded cluster)")
     _cluster_arg(p)
     p.add_argument("--no-auth", action="store_true", help="no API tokens (single user, loopback only)")
     p.set_defaults(fn=cmd_serve)
     p = sub.add_parser("token", help="make, list or revoke API tokens of a server's users")
-    p.add_argument("action", choices=["create", "list", "revoke"])
-    p.add_argument("name", nargs="?")
-    p.add_argument("--admin", action="store_true", help="the token sees and cancels every user's jobs")
-    p.add_argument("--replace", action="store_true", help="replace the user's existing token")
-    p.add_argument("--data-dir", default=None, help="the server's data folder (default: MAXFS_DATA_DIR)")
-    p.set_defaults(fn=cmd_token)
+    actions = p.add_subparsers(dest="action", required=True, metavar="{create,list,revoke}")
+    for action, help_ in (
+        ("create", "make a token for a user and print it (shown only this once)"),
+        ("list", "list the users that have a token"),
+        ("revoke", "revoke a user's token"),
+    ):
+        t = actions.add_parser(action, help=help_, description=help_)
+        if action != "list":
+            t.add_argument("name", help="the user's name")
+        if action == "create":
+            t.add_argument(
+                "--admin", action="store_true", help="the token sees and cancels every user's jobs"
+            )
+            t.add_argument("--replace", action="store_true", help="replace the user's existing token")
+        t.add_argument("--data-dir", default=None, help="the server's data folder (default: MAXFS_DATA_DIR)")
+        t.set_defaults(fn=cmd_token)
     for name, fn, help_ in (
         ("status", cmd_status, "show a job's state and progress"),
         ("cancel", cmd_cancel, "cancel a job"),
@@ -527,10 +641,25 @@ def parser() -> argparse.ArgumentParser:
     _solver_args(p)
     _images_arg(p)
     p.add_argument("--wait", action="store_true", help="wait for the job to finish, showing progress")
+    p.add_argument("--name", default=None, help="what to call the job (default: the folder's name)")
+    p.add_argument(
+        "--reuse",
+        action="store_true",
+        help="if a finished job has these inputs and parameters, print its id instead of computing "
+        "again (without it such a submit is refused, naming the job)",
+    )
     p.set_defaults(fn=cmd_submit)
     p = sub.add_parser("fetch", help="download a job's results as a Zarr folder")
     p.add_argument("job_id")
-    p.add_argument("-o", "--output", required=True)
+    p.add_argument(
+        "-o",
+        "--output",
+        required=True,
+        help="output folder to create: it will hold results.zarr/ and previews/",
+    )
+    p.add_argument(
+        "--overwrite", action="store_true", help="replace an existing OUTPUT that holds maxfs results"
+    )
     p.add_argument("--wait", action="store_true", help="wait until the job has finished, then fetch")
     p.add_argument("--inputs", action="store_true", help="also download the input image stack")
     p.add_argument(
@@ -541,20 +670,51 @@ def parser() -> argparse.ArgumentParser:
     return ap
 
 
+def _subparser(ap: argparse.ArgumentParser, command: str | None) -> argparse.ArgumentParser:
+    """The parser of ``command`` (``token create`` included), or ``ap``."""
+    for action in ap._actions:
+        if isinstance(action, argparse._SubParsersAction) and command in action.choices:
+            return action.choices[command]
+    return ap
+
+
+def parse(argv: list[str] | None = None) -> argparse.Namespace:
+    """The command line, with a suggestion for a mistyped option (``--esp``: did you mean ``--eps``?)
+    from the parser of the command it was given to, whose usage is shown."""
+    ap = parser()
+    args, extra = ap.parse_known_args(argv)
+    if extra:
+        p = _subparser(ap, getattr(args, "command", None))
+        if getattr(args, "action", None) and p is not ap:
+            p = _subparser(p, args.action)
+        known = [o for a in p._actions for o in a.option_strings if o.startswith("--")]
+        hints = []
+        for word in extra:
+            close = difflib.get_close_matches(word.split("=", 1)[0], known, n=1, cutoff=0.6)
+            if word.startswith("-") and close:
+                hints.append(f"{word}: did you mean {close[0]}?")
+        p.error(f"unrecognized arguments: {' '.join(extra)}" + "".join(f"; {h}" for h in hints))
+    return args
+
+
+def _interrupted() -> None:
+    print("\nmaxfs: interrupted; run the same command again to resume", file=sys.stderr, flush=True)
+    # tiles still running in threads or worker processes would hold the exit (and print
+    # tracebacks); their work is not lost: a tile counts only once its done marker is written
+    sys.stdout.flush()
+    os._exit(130)
+
+
 def main(argv: list[str] | None = None) -> int:
-    args = parser().parse_args(argv)
     try:
+        args = parse(argv)
         return int(args.fn(args))
     except MaxfsError as e:
         print(f"maxfs: error: {e}", file=sys.stderr)
         # the client marks errors from the server's answers with their status (service.cli.client)
         return EXIT_SERVER if getattr(e, "http_status", 0) >= 500 else EXIT_USAGE
     except KeyboardInterrupt:
-        print("\nmaxfs: interrupted; run the same command again to resume", file=sys.stderr, flush=True)
-        # tiles still running in threads or worker processes would hold the exit (and print
-        # tracebacks); their work is not lost: a tile counts only once its done marker is written
-        sys.stdout.flush()
-        os._exit(130)
+        _interrupted()
     except Exception as e:
         # httpx is imported only by the verbs that talk to a server (0.1 s less for `maxfs run`)
         httpx = sys.modules.get("httpx")
@@ -576,7 +736,10 @@ def console() -> None:
     import atexit
     import threading
 
-    code = main()
+    try:
+        code = main()
+    except KeyboardInterrupt:  # between main's handlers, e.g. while one prints
+        _interrupted()
     busy = [t for t in threading.enumerate() if t is not threading.main_thread() and not t.daemon]
     if busy:
         sys.exit(code)

@@ -16,7 +16,7 @@ from fastapi import FastAPI
 
 from maxfs.service.http.docs import install_docs
 from maxfs.service.http.error_handlers import install_error_handlers
-from maxfs.service.http.guards import RequestGuard
+from maxfs.service.http.guards import NoSniff, RequestGuard
 from maxfs.service.http.jobs import JobManager
 from maxfs.service.http.models import Health
 from maxfs.service.http.page import install_page
@@ -53,6 +53,7 @@ def create_app(settings: Settings | None = None, manager: JobManager | None = No
     app.include_router(JobRoutes(manager, settings, tokens).router)
     # the token before any body is read; JSON bodies capped (service.http.guards)
     app.add_middleware(RequestGuard, settings=settings, tokens=tokens)
+    app.add_middleware(NoSniff)  # outermost: the guard's own error answers get it too
     install_docs(app)
     install_page(app)
     install_error_handlers(app)  # service.http.statuses: one table from error class to status

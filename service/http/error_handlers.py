@@ -13,7 +13,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.responses import JSONResponse
 
 from maxfs.service.http.statuses import status_of
-from maxfs.storage.errors import MaxfsError
+from maxfs.storage.errors import InsufficientStorageError, MaxfsError, is_disk_full
 
 
 def error_response(exc: Exception) -> JSONResponse:
@@ -29,6 +29,17 @@ def install_error_handlers(app: FastAPI) -> None:
     @app.exception_handler(MaxfsError)
     async def maxfs_error(_: Request, exc: MaxfsError) -> JSONResponse:
         return error_response(exc)
+
+    @app.exception_handler(OSError)
+    async def os_error(_: Request, exc: OSError) -> JSONResponse:
+        if not is_disk_full(exc):
+            raise exc  # any other OSError is a bug: the server's 500
+        return error_response(
+            InsufficientStorageError(
+                "the server's disk is full: what this request sent was not stored. Delete old jobs "
+                "(`maxfs delete`) or ask the administrator for space, then send it again"
+            )
+        )
 
     @app.exception_handler(StarletteHTTPException)
     async def http_error(_: Request, exc: StarletteHTTPException) -> JSONResponse:

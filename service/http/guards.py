@@ -3,7 +3,9 @@
 - Request bodies are read only after the token is checked, never past a size cap,
   and never waiting more than ``MAXFS_UPLOAD_IDLE_TIMEOUT`` seconds for the next piece
   (:func:`body_chunks`); a client that hangs up is one log line, not a traceback.
-- Each user may have ``MAXFS_MAX_UPLOADS_PER_USER`` uploads in flight (:class:`UploadSlots`).
+- Each user may have ``MAXFS_MAX_UPLOADS_PER_USER`` uploads and ``MAXFS_MAX_DOWNLOADS_PER_USER``
+  streamed downloads in flight (:class:`UploadSlots`, :class:`HeldStream`); a download whose
+  reader takes nothing for ``MAXFS_DOWNLOAD_IDLE_TIMEOUT`` seconds is dropped.
 - Disk space is reserved before it is written (:class:`DiskBudget`): concurrent uploads
   cannot together eat into the reserve that each alone would have respected.
 - Encoded images are decoded off the event loop, at most ``MAXFS_DECODE_SLOTS`` at once,
@@ -26,6 +28,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 from starlette.requests import ClientDisconnect, Request
+from starlette.responses import StreamingResponse
 
 from maxfs.service.http.error_handlers import error_response
 from maxfs.storage.errors import (
@@ -116,10 +119,13 @@ async def stage_body(request: Request, folder: Path, prefix: str, limit: int, id
 
 
 class UploadSlots:
-    """At most ``per_user`` request bodies in flight per user (429 beyond)."""
+    """At most ``per_user`` request bodies (or, with ``what="downloads"``, answers) in flight
+    per user (429 beyond)."""
 
-    def __init__(self, per_user: int) -> None:
-        self.per_user = per_user
+    def __init__(
+        self, per_user: int, what: str = "uploads", setting: str = "MAXFS_MAX_UPLOADS_PER_USER"
+    ) -> None:
+        self.per_user, self.what, self.setting = per_user, what, setting
         self.busy: dict[str, int] = {}
 
     @contextmanager
@@ -127,8 +133,8 @@ class UploadSlots:
         n = self.busy.get(user, 0)
         if n >= self.per_user:
             raise QuotaError(
-                f"user {user!r} already has {n} uploads in progress, the most allowed "
-                "(MAXFS_MAX_UPLOADS_PER_USER); wait for one to finish"
+                f"user {user!r} already has {n} {self.what} in progress, the most allowed "
+                f"({self.setting}); wait for one to finish"
             )
         self.busy[user] = n + 1
         try:
@@ -137,6 +143,41 @@ class UploadSlots:
             self.busy[user] -= 1
             if not self.busy[user]:
                 del self.busy[user]
+
+
+class HeldStream(StreamingResponse):
+    """A streamed answer that holds one of its user's download slots until it ends, however
+    it ends, and is dropped when the client reads nothing for ``idle_timeout`` seconds (a
+    stalled reader would otherwise hold its slot, and a piece of the answer, for ever)."""
+
+    def __init__(
+        self, content: Any, *, slots: UploadSlots, user: str, idle_timeout: float, **kw: Any
+    ) -> None:
+        self.slot = slots.take(user)
+        self.slot.__enter__()  # 429 here, before any answer starts
+        super().__init__(content, **kw)
+        self.idle_timeout = idle_timeout
+
+    async def __call__(self, scope: Any, receive: Any, send: Any) -> None:
+        async def timed_send(message: Any) -> None:
+            try:
+                await asyncio.wait_for(send(message), self.idle_timeout)
+            except TimeoutError:
+                raise ClientGoneError(
+                    f"the client read nothing for {self.idle_timeout:g} s (MAXFS_DOWNLOAD_IDLE_TIMEOUT); "
+                    "download dropped"
+                ) from None
+
+        try:
+            await super().__call__(scope, receive, timed_send)
+        except Exception as e:
+            gone = e.exceptions if isinstance(e, BaseExceptionGroup) else (e,)
+            if not all(isinstance(x, ClientGoneError) for x in gone):
+                raise
+            # the answer stays incomplete: the server closes the connection
+            log.info("%s %s: %s", scope.get("method"), scope.get("path"), gone[0])
+        finally:
+            self.slot.__exit__(None, None, None)
 
 
 class DiskBudget:
@@ -269,3 +310,25 @@ def _replay(body: bytes, receive: Any) -> Any:
         return await receive()
 
     return again
+
+
+class NoSniff:
+    """ASGI middleware: ``X-Content-Type-Options: nosniff`` on every answer (static assets,
+    JSON, NPY, zip, PNG alike), so no browser runs a body as another type than it is sent as."""
+
+    def __init__(self, app: Any) -> None:
+        self.app = app
+
+    async def __call__(self, scope: dict, receive: Any, send: Any) -> None:
+        if scope["type"] != "http":
+            return await self.app(scope, receive, send)
+
+        async def send_nosniff(message: dict) -> None:
+            if message["type"] == "http.response.start":
+                headers = list(message.get("headers", []))
+                if not any(k.lower() == b"x-content-type-options" for k, _ in headers):
+                    headers.append((b"x-content-type-options", b"nosniff"))
+                message = {**message, "headers": headers}
+            await send(message)
+
+        await self.app(scope, receive, send_nosniff)

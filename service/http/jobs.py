@@ -39,6 +39,7 @@ from maxfs.storage.errors import (
     NotFoundError,
     QuotaError,
     StoreError,
+    is_disk_full,
 )
 from maxfs.storage.layout import JobSpec, JobStore
 from maxfs.storage.params import JobParams
@@ -80,10 +81,15 @@ class JobManager:
         self.fair = FairShare()
         self.disk = DiskBudget(self.root, s.min_free_bytes)
         self.uploads = UploadSlots(s.max_uploads_per_user)
+        self.downloads = UploadSlots(s.max_downloads_per_user, "downloads", "MAXFS_MAX_DOWNLOADS_PER_USER")
         self.decoder = Decoder(s.decode_slots)
         #: quota and disk checks (service.http.quotas)
         self.limits = JobLimits(s, self.index, self.disk, self._record_or_none)
         self.sweeper: asyncio.Task | None = None
+        #: why a run ended, for jobs whose failure could not be written (a full disk): their
+        #: records still say queued or running; :meth:`record` answers failed (and writes it
+        #: once it can), so status tells the truth and a start resumes them
+        self.unrecorded: dict[str, str] = {}
 
     # -- life cycle ---------------------------------------------------------------------------
     async def start(self) -> None:
@@ -176,7 +182,9 @@ class JobManager:
         """Refuse (507) what would eat into the disk reserve (see :class:`service.http.quotas.JobLimits`)."""
         self.limits.check_disk(nbytes, what)
 
-    def create(self, spec: JobSpec, params: JobParams, user: User, label: str | None = None) -> JobRecord:
+    def create(
+        self, spec: JobSpec, params: JobParams, user: User, label: str | None = None, name: str | None = None
+    ) -> JobRecord:
         spec = spec.validate()
         self.limits.check_limits(spec, user)
         self.limits.check_tiles(spec, params)
@@ -184,7 +192,7 @@ class JobManager:
         d = self.root / job_id
         try:
             JobStore.create(d, spec, params)
-            rec = JobRecord(id=job_id, owner=user.name, owner_uid=user.uid, label=label)
+            rec = JobRecord(id=job_id, owner=user.name, owner_uid=user.uid, label=label, name=name)
             save_record(d, rec)  # last: a folder without a record is an orphan
         except BaseException:
             shutil.rmtree(d, ignore_errors=True)
@@ -193,7 +201,20 @@ class JobManager:
         return rec
 
     def record(self, job_id: str) -> JobRecord:
-        return load_record(self.job_dir(job_id))
+        rec = load_record(self.job_dir(job_id))
+        reason = self.unrecorded.get(job_id)
+        if reason is not None:
+            if not rec.state.active or job_id in self.runs:
+                self.unrecorded.pop(job_id, None)  # started again, or recorded since
+            else:
+                rec.state, rec.error = JobState.FAILED, reason
+                rec.finished_at = rec.finished_at or time.time()
+                try:
+                    save_record(self.job_dir(job_id), rec)
+                    self.unrecorded.pop(job_id, None)
+                except OSError:
+                    pass  # still no space: answered as failed all the same
+        return rec
 
     def store(self, job_id: str, mode: str = "r") -> JobStore:
         return JobStore.open(self.job_dir(job_id), mode=mode)
@@ -247,9 +268,12 @@ class JobManager:
         """Start (or resume, after cancel or failure) a job whose images are all uploaded."""
         async with self.lock(job_id):
             rec = self.access(job_id, user)
-            if rec.state.active or job_id in self.runs:
+            if job_id in self.runs:
                 raise ConflictError(f"job {job_id} is already {rec.state.value}")
-            if rec.state not in TRANSITIONS["start"]:
+            if rec.state.active:  # the record says queued or running, but nothing runs it
+                log.warning("job %s was %s with nothing running it; resuming it", job_id, rec.state.value)
+                rec.state = rec.state.after("resume")
+            elif rec.state not in TRANSITIONS["start"]:
                 raise ConflictError(f"job {job_id} is already {rec.state.value}")
             store = self.store(job_id)
 
@@ -284,7 +308,8 @@ class JobManager:
                     "wait for one to finish before resuming this one"
                 )
             await self.ensure_client()
-            rec.state = rec.state.after("start")
+            if not rec.state.active:
+                rec.state = rec.state.after("start")
             rec.error = None
             save_record(self.job_dir(job_id), rec)
             self.index.reopen(rec)
@@ -310,8 +335,16 @@ class JobManager:
             except asyncio.CancelledError:
                 raise
             except Exception as e:  # never leave a job "running" with nothing running it
-                log.exception("job %s stopped by an internal error", job_id)
-                self._fail(job_id, f"internal error: {type(e).__name__}: {e}")
+                if is_disk_full(e):
+                    log.error("job %s stopped: the disk is full (%s)", job_id, e)
+                    self._fail(
+                        job_id,
+                        "the server's disk filled up while the job ran; its finished tiles are kept: "
+                        "start it again once space is freed",
+                    )
+                else:
+                    log.exception("job %s stopped by an internal error", job_id)
+                    self._fail(job_id, f"internal error: {type(e).__name__}: {e}")
             finally:
                 self.runs.pop(job_id, None)
 
@@ -323,12 +356,13 @@ class JobManager:
 
     def _fail(self, job_id: str, reason: str) -> None:  # the run task's last word: no lock needed
         try:
-            rec = self.record(job_id)
+            rec = load_record(self.job_dir(job_id))
             if rec.state.active:
                 rec.state, rec.error, rec.finished_at = JobState.FAILED, reason, time.time()
                 save_record(self.job_dir(job_id), rec)
-        except Exception:
+        except Exception as e:
             log.exception("cannot record the failure of job %s", job_id)
+            self.unrecorded[job_id] = f"{reason} (not yet recorded: {type(e).__name__}: {e})"
 
     async def cancel(self, job_id: str, user: User) -> JobRecord:
         """Cancel a job: nothing more starts, and running tiles stop at their next cancel

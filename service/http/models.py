@@ -48,20 +48,26 @@ class ErrorBody(BaseModel):
 
 
 class Progress(BaseModel):
-    """How far a job is; shares are over the masked pixels of the finished tiles."""
+    """How far a job is; shares are over all masked pixels (unfinished ones count as not solved)."""
 
     model_config = OPEN
 
-    fraction: float = Field(description="tiles done / tiles total (0 before the first start)")
+    fraction: float = Field(
+        description="masked pixels solved (in finished tiles, and so far in running ones) / masked "
+        "pixels (tiles done / tiles total while the mask is not counted); 0 before the first start"
+    )
     tiles_done: int
     tiles_total: int
     pixels_done: int = Field(description="masked pixels in finished tiles")
+    pixels_running: int = Field(0, description="masked pixels solved so far in tiles still running")
     pixels_total: int = Field(description="masked pixels")
     pixels_per_second: float | None = Field(None, description="masked pixels per second in this run")
     eta_seconds: float | None = Field(None, description="seconds left at the current rate (running jobs)")
-    solved_share: float | None = Field(None, description="share of finished masked pixels with a normal")
+    solved_share: float | None = Field(
+        None, description="share of all masked pixels with a normal (unfinished tiles count as not solved)"
+    )
     certified_share: float | None = Field(
-        None, description="share of finished masked pixels whose optimum was proved"
+        None, description="share of all masked pixels whose optimum was proved"
     )
 
 
@@ -72,6 +78,11 @@ class ResultsInfo(BaseModel):
 
     available: bool = Field(description="false until the job is first started (results answer 409)")
     partial: bool = Field(description="true while the job is not done (unfinished tiles hold fill values)")
+    note: str = Field("", description="what the results are, in words (the job page shows it)")
+    resumable: bool = Field(
+        True,
+        description="false for a failed job: a resume with the same inputs and options fails the same way",
+    )
 
 
 class Links(BaseModel):
@@ -90,6 +101,7 @@ class JobStatus(BaseModel):
     id: str = Field(description="32 hexadecimal digits")
     state: JobState
     owner: str = Field(description="the user whose token created the job")
+    name: str | None = Field(None, description="what people call the job (default: the folder's name)")
     created_at: float = Field(description="Unix time")
     updated_at: float
     started_at: float | None = Field(
@@ -101,6 +113,7 @@ class JobStatus(BaseModel):
     tiles_done: int = 0
     pixels_total: int = 0
     pixels_done: int = 0
+    pixels_running: int = 0
     certified_pixels: int = 0
     solved_pixels: int = 0
     pixel_rate: float | None = None
@@ -161,6 +174,11 @@ class JobShape(BaseModel):
     intensities: list[float] | list[list[float]] | None = Field(
         None, description="light intensities: k values, or k x channels"
     )
+    name: str | None = Field(
+        None,
+        max_length=200,
+        description="what people call the job (`maxfs submit` sends the folder's name, or --name)",
+    )
     label: str | None = Field(
         None,
         max_length=200,
@@ -201,6 +219,28 @@ def solve_options(req: BaseModel) -> dict[str, Any]:
     return {o.name: v for o in SOLVE_OPTIONS if (v := getattr(req, o.name)) is not None}
 
 
+def results_note(rec: JobRecord) -> str:
+    """What a job's results are, said on its page: never "not started" for a job that ran."""
+    n, of = rec.tiles_done, rec.tiles_total
+    if rec.state is JobState.DONE:
+        return ""
+    if rec.state is JobState.FAILED:
+        got = f"partial results: {n} of {of} tiles finished" if n else "no results: no tile finished"
+        return (
+            f"The job failed ({got}); the error above says why. Resuming it with the same inputs and "
+            "options would fail the same way, so submit it again with other options."
+        )
+    if rec.state is JobState.CANCELLED:
+        if not n:
+            return "No results: the job was cancelled before any tile finished."
+        return f"Partial results: cancelled after {n} of {of} tiles; Resume goes on from there."
+    if rec.state in (JobState.CREATED, JobState.UPLOADING):
+        return "No results yet: the job has not been started."
+    if not n:
+        return f"No results yet: the job is {rec.state.value}."
+    return f"Partial results: {n} of {of} tiles so far."
+
+
 def status_body(
     rec: JobRecord, base: str, uploaded: int | None = None, k: int | None = None
 ) -> dict[str, Any]:
@@ -209,11 +249,16 @@ def status_body(
     body = rec.to_json()
     body.pop("uploaded_images", None)  # the indices; "uploaded" (count) and "missing_images" say it
     frac = rec.tiles_done / rec.tiles_total if rec.tiles_total else 0.0
+    if rec.pixels_total:  # a tile of the object's edge is less work than a full one
+        # solved pixels of running tiles count too: one large tile does not sit at 0 % for minutes
+        done = rec.pixels_done + (rec.pixels_running if rec.state.active else 0)
+        frac = min(done / rec.pixels_total, 1.0) if rec.state is not JobState.DONE else 1.0
     body["progress"] = {
         "fraction": frac,
         "tiles_done": rec.tiles_done,
         "tiles_total": rec.tiles_total,
         "pixels_done": rec.pixels_done,
+        "pixels_running": rec.pixels_running if rec.state.active else 0,
         "pixels_total": rec.pixels_total,
         "pixels_per_second": rec.pixel_rate,
         "eta_seconds": rec.eta_seconds,
@@ -222,7 +267,12 @@ def status_body(
     }
     body["warnings"] = rec.warnings()
     # results are complete only when done; before the first start there are none at all
-    body["results"] = {"available": rec.started_at is not None, "partial": rec.state is not JobState.DONE}
+    body["results"] = {
+        "available": rec.started_at is not None,
+        "partial": rec.state is not JobState.DONE,
+        "note": results_note(rec),
+        "resumable": rec.state is not JobState.FAILED,
+    }
     if uploaded is not None:
         body["uploaded"] = uploaded
         body["k"] = k

@@ -25,7 +25,7 @@ _ERRORS = {
     409: "the job is in the wrong state for this (e.g. results before the first start, upload after it)",
     413: "body, k or image larger than the server allows",
     422: "invalid input: a bad field, option, image, mask or light set (the detail says which)",
-    429: "too many unfinished jobs for this user (MAXFS_MAX_OPEN_JOBS)",
+    429: "a per-user limit: unfinished jobs (MAXFS_MAX_OPEN_JOBS), uploads or downloads in flight",
     507: "storing this would eat into the server's free-disk reserve (MAXFS_MIN_FREE_BYTES)",
 }
 

@@ -56,8 +56,9 @@ class JobLimits:
         reserved (:class:`service.http.guards.DiskBudget`), would eat into the disk reserve."""
         self.disk.check(nbytes, what)
 
-    def check_limits(self, spec: JobSpec, user: User) -> None:
-        """Per-job and per-user limits, then disk space, before anything is stored."""
+    def check_size(self, spec: JobSpec) -> None:
+        """``MAXFS_MAX_K`` and ``MAXFS_MAX_PIXELS`` (413): before anything is computed from the
+        size (the automatic tile of a huge height overflowed into a 500)."""
         s = self.settings
         if spec.k > s.max_k:
             raise PayloadTooLargeError(
@@ -69,6 +70,11 @@ class JobLimits:
                 f"{spec.height} x {spec.width} = {spec.pixels} pixels is more than this server allows "
                 f"({s.max_pixels}, MAXFS_MAX_PIXELS); crop or bin the images"
             )
+
+    def check_limits(self, spec: JobSpec, user: User) -> None:
+        """Per-job and per-user limits, then disk space, before anything is stored."""
+        s = self.settings
+        self.check_size(spec)
         if self.open_jobs(user) >= s.max_open_jobs:
             raise QuotaError(
                 f"user {user.name!r} already has {s.max_open_jobs} unfinished jobs, the most allowed "

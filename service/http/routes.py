@@ -12,11 +12,12 @@ import asyncio
 import hashlib
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Depends, Path, Request, Security
+from fastapi import APIRouter, Depends, Path, Query, Request, Security
 from fastapi.responses import JSONResponse, Response, StreamingResponse
 
 from maxfs.service.http import openapi as api
 from maxfs.service.http.auth import make_auth, user_of
+from maxfs.service.http.guards import HeldStream
 from maxfs.service.http.jobs import TEMP_PREFIX, JobManager
 from maxfs.service.http.models import PARTIAL_HEADER, CreateJob, solve_options, status_body
 from maxfs.service.http.streams import job_still_there, npy_pieces, npy_size, preview_png, zip_pieces
@@ -27,7 +28,17 @@ from maxfs.storage.errors import ConflictError, NotFoundError, PayloadTooLargeEr
 from maxfs.storage.layout import JobSpec, JobStore
 from maxfs.storage.records import JobState
 from maxfs.storage.requests import job_params
-from maxfs.storage.tokens import TokenStore
+from maxfs.storage.tokens import TokenStore, User
+
+#: The header of ``GET /jobs`` that says whose jobs these are.
+USER_HEADER = "X-Maxfs-User"
+
+
+def signed_in_as(user: User, auth: bool) -> str:
+    """'alice', 'root (admin)', or what a server without auth says: everyone is the local user."""
+    if not auth:
+        return "no sign-in (auth is off)"
+    return user.name + (" (admin)" if user.admin else "")
 
 
 class JobRoutes:
@@ -66,7 +77,7 @@ class JobRoutes:
             name="list",
             summary="List jobs",
             **doc,
-            responses=api.job_list_answer(),
+            responses=api.job_list_answer() | api.errors(422),
         )
         r.add_api_route(
             "/{job_id}",
@@ -118,7 +129,7 @@ class JobRoutes:
             name="zip",  # the operationId stays zip_jobs__job_id__results_zip_get
             summary="Download the results as a zip",
             **binary,
-            responses=api.ZIP_ANSWER | api.errors(404, 409, 422),
+            responses=api.ZIP_ANSWER | api.errors(404, 409, 422, 429),
         )
         r.add_api_route(
             "/{job_id}/results/{name}.npy",
@@ -126,7 +137,7 @@ class JobRoutes:
             methods=["GET"],
             summary="Download an output array (NPY)",
             **binary,
-            responses=api.NPY_ANSWER | api.errors(404, 409, 413, 422),
+            responses=api.NPY_ANSWER | api.errors(404, 409, 413, 422, 429),
         )
         r.add_api_route(
             "/{job_id}/previews/{name}.png",
@@ -159,15 +170,23 @@ class JobRoutes:
             lights=req.lights,
             intensities=req.intensities,
         ).validate()
+        self.m.limits.check_size(spec)  # before the automatic tile is computed from the size
         params = job_params(spec, solve_options(req), self.s.task_memory)
-        rec = self.m.create(spec, params, user_of(request), label=req.label)
+        rec = self.m.create(spec, params, user_of(request), label=req.label, name=req.name)
         body = self._body(request, rec.id)
         return JSONResponse(body, status_code=201, headers={"Location": body["links"]["self"]})
 
-    async def list_jobs(self, request: Request) -> list[dict[str, Any]]:
-        """All jobs, oldest first."""
+    async def list_jobs(
+        self,
+        request: Request,
+        mine: Annotated[bool, Query(description="only the caller's own jobs (for an admin too)")] = False,
+    ) -> JSONResponse:
+        """The caller's jobs (an admin's: everyone's, unless ``mine=true``), oldest first.
+        ``X-Maxfs-User`` names who the token belongs to (the job page says who is signed in)."""
         base = str(request.base_url).rstrip("/")
-        return [status_body(r, base) for r in self.m.list_jobs(user_of(request))]
+        user = user_of(request)
+        body = [status_body(r, base) for r in self.m.list_jobs(user, everyone=not mine)]
+        return JSONResponse(body, headers={USER_HEADER: signed_in_as(user, self.s.auth)})
 
     async def status(self, job_id: str, request: Request) -> dict[str, Any]:
         """State, progress (tiles, pixels/s, ETA, certified share) and error reason of a job."""
@@ -239,7 +258,8 @@ class JobRoutes:
                 f"({self.s.max_result_bytes / 2**20:.0f} MiB); fetch results.zip (`maxfs fetch`) instead"
             )
         # streamed from the store in bands (service.http.streams): a slow reader holds one band
-        return StreamingResponse(
+        return self._stream(
+            request,
             npy_pieces(store, name),
             media_type="application/octet-stream",
             headers={
@@ -247,6 +267,16 @@ class JobRoutes:
                 "Content-Length": str(npy_size(meta)),
             }
             | headers,
+        )
+
+    def _stream(self, request: Request, pieces: Any, **kw: Any) -> HeldStream:
+        """A streamed answer in one of the user's download slots (429 when all are taken)."""
+        return HeldStream(
+            pieces,
+            slots=self.m.downloads,
+            user=user_of(request).name,
+            idle_timeout=self.s.download_idle_timeout,
+            **kw,
         )
 
     async def preview(
@@ -299,7 +329,8 @@ class JobRoutes:
         store = self.m.store(job_id)
         files = await asyncio.to_thread(store.download_files, inputs)
         # made while it is sent (service.http.streams): no temporary copy on any disk, one piece in memory
-        return StreamingResponse(
+        return self._stream(
+            request,
             zip_pieces(files, folder=store.path),
             media_type="application/zip",
             headers={"Content-Disposition": f'attachment; filename="{job_id}.zarr.zip"'} | headers,

@@ -54,3 +54,26 @@ def render(name: str, arrays: dict[str, NDArray], k: int) -> NDArray[np.uint8]:
 
         return relief_rgb(arrays["depth"])
     raise KeyError(name)
+
+
+def legend_strip(width: int, k: int) -> NDArray[np.uint8]:
+    """A grey legend for the inlier-count preview, as wide as it: a ramp from black (0 images)
+    to white (all ``k``), and under it "0" at the left and "k images" at the right."""
+    from PIL import Image, ImageDraw, ImageFont
+
+    ramp = np.tile(np.round(np.linspace(0, 255, max(width, 1))).astype(np.uint8), (6, 1))
+    text = Image.new("L", (max(width, 1), 14), 0)
+    draw = ImageDraw.Draw(text)
+    font = ImageFont.load_default()
+    right = f"{k} images"
+    draw.text((1, 1), "0", fill=255, font=font)
+    draw.text((max(width - 1 - draw.textlength(right, font=font), 12), 1), right, fill=255, font=font)
+    return np.vstack([np.zeros((2, ramp.shape[1]), np.uint8), ramp, np.asarray(text)])
+
+
+def with_legend(name: str, image: NDArray[np.uint8], k: int) -> NDArray[np.uint8]:
+    """The preview file as written beside the results: ``inlier_count`` gets its legend below
+    (its greys mean image counts); the others are self-explaining colour maps."""
+    if name != "inlier_count":
+        return image
+    return np.vstack([image, legend_strip(image.shape[1], k)])

@@ -332,7 +332,9 @@ def _task_on_scheduler(dask_scheduler: Any, key: str) -> dict[str, Any]:
     }
 
 
-async def _probe_answer(client: Client, job_dir: Path, name: str, nonce: str, job_id: str) -> str | None:
+async def _probe_answer(
+    client: Client, job_dir: Path, name: str, nonce: str, job_id: str, priority: int = 0
+) -> str | None:
     """Run :func:`probe_store` on a worker and return its answer, however long a worker takes
     to come (a SLURM worker job may wait in the queue). Every ``PROBE_REPORT_SECONDS`` the log
     says where the check stands on the scheduler; a check the scheduler has never heard of (its
@@ -340,7 +342,7 @@ async def _probe_answer(client: Client, job_dir: Path, name: str, nonce: str, jo
     attempt, waited = 0, 0.0
     while True:
         key = f"maxfs-probe-{job_id}-{nonce[:8]}-{attempt}"
-        fut = client.submit(probe_store, str(job_dir), name, nonce, key=key, pure=False)
+        fut = client.submit(probe_store, str(job_dir), name, nonce, key=key, pure=False, priority=priority)
         waiter = asyncio.ensure_future(result(fut))
         try:
             while True:
@@ -419,7 +421,7 @@ def probe_store(job_dir: str, name: str, token: str) -> str | None:
     return None
 
 
-async def check_store_visible(client: Client, job_dir: Path, job_id: str) -> None:
+async def check_store_visible(client: Client, job_dir: Path, job_id: str, priority: int = 0) -> None:
     """Before the first tile: a worker must read and write the job store this process made.
 
     Raises :class:`StoreError` with what the worker saw otherwise. Waits for a worker (a
@@ -431,7 +433,7 @@ async def check_store_visible(client: Client, job_dir: Path, job_id: str) -> Non
     probe, answer = job_dir / name, job_dir / f"{name}.answer"
     probe.write_text(nonce)
     try:
-        seen = await _probe_answer(client, job_dir, name, nonce, job_id)
+        seen = await _probe_answer(client, job_dir, name, nonce, job_id, priority)
         if seen is None and not (answer.is_file() and answer.read_text() == nonce):
             seen = "a worker wrote its answer where this process cannot read it"
         if seen is not None:

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from maxfs.service.results.previews import PREVIEW_INPUTS, PREVIEWS, render
+from maxfs.service.results.previews import PREVIEW_INPUTS, PREVIEWS, render, with_legend
 from maxfs.service.runs.progress import ProgressFn
 from maxfs.service.runs.timings import Timings
 from maxfs.service.settings import Settings, cluster_settings, runs_in_process
@@ -28,7 +28,7 @@ from maxfs.storage.params import JobParams
 from maxfs.storage.records import JobRecord, JobState, load_record, save_record
 from maxfs.storage.stack import StackReader
 
-#: Said when loading the solver kernels takes long: they are being compiled.
+#: Said when numba misses its cache while loading the solver kernels: they are being compiled.
 COMPILING = (
     "compiling the exact solver for this machine: once after an install, about 20 s "
     "(`maxfs warm` does it ahead of time)"
@@ -66,8 +66,11 @@ def ingest(
         old = store.params
         comparable = old.unresolved() if params.eps is None else old
         if comparable != params:
-            store.set_params(params)
-            note = f"parameters differ from the earlier run in {out}; every tile will be recomputed"
+            # never a quiet replacement: a sweep into one folder would keep only its last run
+            raise ConflictError(
+                f"{out} holds results made with other parameters ({param_changes(comparable, params)}); "
+                "choose another output folder (-o) to keep both, or add --overwrite to replace them"
+            )
         else:
             note = (
                 f"resuming {out}: {int(store.done_grid().sum())} of {len(store.tiles())} tiles already done"
@@ -87,6 +90,20 @@ def ingest(
     if not store.read_mask().any():
         raise InvalidInputError(f"the mask of {ds.name} selects no pixel; nothing to solve")
     return store, note
+
+
+def param_changes(old: JobParams, new: JobParams) -> str:
+    """'eps 1.0 -> 2.0, tile 64 -> 32': the options that differ, as the user gives them."""
+    a, b = old.to_json(), new.to_json()
+    shown = {"eps_request": "eps", "response_request": "response", "eps": None, "response": None}
+    return (
+        ", ".join(
+            f"{shown.get(k, k)} {a[k]} -> {b[k]}"
+            for k in a
+            if a[k] != b.get(k) and shown.get(k, k) is not None
+        )
+        or "eps or response"
+    )
 
 
 def _check_same_inputs(store: JobStore, ds: Dataset, spec: JobSpec, out: Path, copy_images: bool) -> None:
@@ -121,7 +138,7 @@ def _check_same_inputs(store: JobStore, ds: Dataset, spec: JobSpec, out: Path, c
             img = ds.read(i)
             d = array_digest(img)
             if known[i] and d != stored[i]:
-                raise differ(f"the images (image {i} first)")
+                raise differ(f"the images ({ds.label(i)} first)")
             if copy_images and not uploaded[i]:
                 store.write_image(i, img)
             elif not known[i]:
@@ -223,7 +240,7 @@ def run_folder(
             if store.params.solver == "exact":
                 with tm.phase("load the solver"):  # its own row: 0.7 s from the cache, or a compile
                     try:
-                        load_kernels(on_slow=(lambda: on_note(COMPILING)) if on_note else None)
+                        load_kernels(on_compile=(lambda: on_note(COMPILING)) if on_note else None)
                     except Exception:  # the first tile raises it again, and the job fails with it
                         pass
             rec = run_in_process(out, threads=workers, images=images, on_progress=on_progress, timings=tm.add)
@@ -253,6 +270,6 @@ def write_previews(store: JobStore) -> list[Path]:
     paths = []
     for name in PREVIEWS:
         p = d / f"{name}.png"
-        p.write_bytes(encode_png(render(name, arrays, store.spec.k)))
+        p.write_bytes(encode_png(with_legend(name, render(name, arrays, store.spec.k), store.spec.k)))
         paths.append(p)
     return paths

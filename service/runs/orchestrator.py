@@ -61,15 +61,24 @@ async def run_job(
     run.queue()
     log.info("job %s of %s queued: checking that a worker sees its store", rec.id, user or "-")
     futures: dict[str, object] = {}
+    ticker: asyncio.Task | None = None
     held = 0  # ranks of this job's tiles in its user's backlog (service.runs.fairness), not yet released
     try:
         # a worker must see this very store (a shared filesystem) before any task reads it
-        await check_store_visible(client, run.job_dir, rec.id)
+        prep = fair.prep_priority(user) if fair is not None else 0
+        await check_store_visible(client, run.job_dir, rec.id, priority=prep)
         if run.needs_eps:
             key = f"maxfs-eps-{rec.id}-{uuid.uuid4().hex[:8]}"
             try:
                 eps = await result(
-                    client.submit(estimate_store_eps, str(run.job_dir), key=key, pure=False, retries=retries)
+                    client.submit(
+                        estimate_store_eps,
+                        str(run.job_dir),
+                        key=key,
+                        pure=False,
+                        retries=retries,
+                        priority=prep,
+                    )
                 )
             except Exception as e:
                 raise RuntimeError(f"estimating eps and the response failed: {type(e).__name__}: {e}") from e
@@ -81,7 +90,7 @@ async def run_job(
         digest, nonce = store.params.digest(), uuid.uuid4().hex[:8]
         index_of: dict[str, int] = {}
         # in batches (one message each), yielding to the event loop between them; each batch's
-        # priority is minus its rank in the user's backlog, so users share the workers
+        # priority is minus its last tile's rank in the user's backlog, so users share the workers
         for b in range(0, len(todo), FAIR_BATCH):
             batch = todo[b : b + FAIR_BATCH]
             keys = [f"maxfs-tile-{rec.id}-{i}-{nonce}" for i in batch]
@@ -97,7 +106,7 @@ async def run_job(
                 key=keys,
                 pure=False,
                 retries=retries,
-                priority=-rank,
+                priority=FairShare.batch_priority(rank, n),
             )
             for key, fut, i in zip(keys, futs, batch, strict=True):
                 futures[key] = fut
@@ -105,6 +114,7 @@ async def run_job(
             await asyncio.sleep(0)
         # wait on a window of futures at a time (in submission order, topped up as they finish):
         # as_completed on thousands at once runs thousands of callbacks in one loop turn
+        ticker = asyncio.create_task(_tick(run, progress_interval))
         queue = list(futures.values())
         window = as_completed(queue[:WAIT_WINDOW])
         nxt = WAIT_WINDOW
@@ -133,6 +143,7 @@ async def run_job(
                     fair.release(user)
                     held -= 1
             run.record(out, tile_time_limit)
+        ticker.cancel()
         await asyncio.to_thread(run.check_complete)
         if finish is not None:
             try:
@@ -168,8 +179,21 @@ async def run_job(
         log.warning("job %s failed: %s", rec.id, e)
         return rec
     finally:
+        if ticker is not None:
+            ticker.cancel()
         if fair is not None and held:
             fair.release(user, held)
+
+
+async def _tick(run: JobRun, interval: float) -> None:
+    """Save the record every ``interval`` while tiles run, with the progress inside running tiles
+    (a job of a few long tiles would otherwise show nothing until one finishes)."""
+    while True:
+        await asyncio.sleep(interval)
+        try:
+            run.tick(await asyncio.to_thread(run.store.running_pixels))
+        except Exception:  # progress is a courtesy: a failed save shows next time, or the run fails
+            log.debug("job %s: progress save failed", run.rec.id, exc_info=True)
 
 
 async def _drop(client: Client, futures: dict) -> None:

@@ -41,7 +41,10 @@ def resolve_eps(store: JobStore, eps: float | Estimate) -> JobParams:
     """Record an estimated eps (and response: an :class:`~worker.noise.Estimate`) in the
     store's parameters, after checking it fits the others (e.g. a saturation given by hand)."""
     params = store.params
-    check_options(eps=getattr(eps, "eps", eps), shadow=params.shadow, saturation=params.saturation)
+    # with the job's own model: its default shadow threshold is what creation checked against
+    check_options(
+        eps=getattr(eps, "eps", eps), shadow=params.shadow, saturation=params.saturation, model=params.model
+    )
     params = params.with_eps(eps)
     store.set_params(params)
     return params

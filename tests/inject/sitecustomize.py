@@ -49,7 +49,7 @@ def _install() -> None:
         from maxfs.storage.layout import MASK_WRITING, JobStore
 
         def write_mask(self, mask):  # type: ignore[no-untyped-def]
-            self.group["input_digests"][self.spec.k] = np.frombuffer(MASK_WRITING, np.uint8)
+            self.group["inputs/input_digests"][self.spec.k] = np.frombuffer(MASK_WRITING, np.uint8)
             rows = int(self.group["mask"].chunks[0])
             self.group["mask"][0:rows] = np.asarray(mask, dtype=bool)[0:rows]
             time.sleep(60)

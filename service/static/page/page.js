@@ -123,6 +123,8 @@ async function refresh() {
   try {
     const r = await api("/jobs");
     page.jobs = (await r.json()).reverse(); // newest first
+    const who = r.headers.get("X-Maxfs-User");
+    if (who) $("#who-text").textContent = page.auth ? "Signed in as " + who : who;
     $("#list-error").textContent = "";
     $("#updated").textContent = "updated " + new Date().toLocaleTimeString();
     renderTable();
@@ -157,7 +159,7 @@ function renderTable() {
     }
     const p = job.progress;
     const idCell = cell(row, 0);
-    idCell.textContent = job.id.slice(0, 8);
+    idCell.textContent = job.name ? `${job.name} (${job.id.slice(0, 8)})` : job.id.slice(0, 8);
     idCell.title = job.id;
     cell(row, 1).textContent = job.owner;
     const st = cell(row, 2);
@@ -202,7 +204,7 @@ function renderDetail() {
   $("#detail").hidden = !job;
   if (!job) return;
   const p = job.progress;
-  $("#d-id").textContent = job.id;
+  $("#d-id").textContent = job.name ? `${job.name} · ${job.id}` : job.id;
   const st = $("#d-state");
   st.textContent = job.state;
   st.className = "state state-" + job.state;
@@ -210,7 +212,7 @@ function renderDetail() {
   const stats = [
     ["Owner", job.owner],
     ["Tiles", tiles(p)],
-    ["Pixels", `${p.pixels_done} / ${p.pixels_total}`],
+    ["Pixels solved", `${p.pixels_done + (p.pixels_running || 0)} / ${p.pixels_total}`],
     ["Pixels/s", rate(p.pixels_per_second)],
     ["ETA", job.state === "running" || job.state === "queued" ? hms(p.eta_seconds) : "–"],
     ["Solved", pct(p.solved_share)],
@@ -236,13 +238,17 @@ function renderDetail() {
   $("#d-warnings").replaceChildren(
     ...(job.warnings || []).map((w) => Object.assign(document.createElement("li"), { textContent: w }))
   );
-  $("#d-start").disabled = !["created", "uploading", "cancelled", "failed"].includes(job.state);
-  $("#d-start").textContent = job.state === "cancelled" || job.state === "failed" ? "Resume" : "Start";
+  // a failed job would fail the same way: nothing can be changed from this page (results.resumable)
+  const resumable = !job.results || job.results.resumable !== false;
+  $("#d-start").hidden = !resumable;
+  $("#d-start").disabled = !resumable || !["created", "uploading", "cancelled", "failed"].includes(job.state);
+  $("#d-start").textContent = job.state === "cancelled" ? "Resume" : "Start";
   $("#d-cancel").disabled = FINAL.includes(job.state);
   $("#d-delete").hidden = !page.canDelete;
   $("#d-delete").disabled = !FINAL.includes(job.state);
   const available = job.results && job.results.available;
-  $("#d-no-results").hidden = available;
+  $("#d-no-results").textContent = (job.results && job.results.note) || "";
+  $("#d-no-results").hidden = !(job.results && job.results.note);
   $("#d-previews").hidden = !available;
   $("#d-partial").textContent = available && job.results.partial ? "partial: the job is not done" : "";
   renderDownloads(job, available);
