@@ -39,7 +39,7 @@ from maxfs.storage.outputs import TILE_OUTPUTS, Source
 from maxfs.storage.tiles import DEFAULT_TILE, Tile, tiles
 from maxfs.worker.lstsq import channel_albedo, normal_albedo, refit
 from maxfs.worker.noise import estimate_model
-from maxfs.worker.problem import Thresholds, make_thresholds, shading, usable
+from maxfs.worker.problem import MAX_INTENSITY, Thresholds, make_thresholds, shading, usable
 from maxfs.worker.solvers import SOLVERS, Batch
 
 
@@ -133,7 +133,7 @@ def solve_pixels(
                 fb = usable(I[need].T, _no_shadow(th)).T
             else:
                 with np.errstate(invalid="ignore"):
-                    fb = np.isfinite(I[need]) & (I[need] < th.saturation)
+                    fb = np.isfinite(I[need]) & (I[need] < np.minimum(th.saturation, MAX_INTENSITY))
             if outlier is not None:
                 fb &= ~outlier[need]
             nf = refit(S[need], fb, L, MAX_LIGHT_CONDITION)
