@@ -115,6 +115,9 @@ class JobRecord:
     label: str | None = None  # the client's name for the submission (maxfs submit resumes by it)
     name: str | None = None  # what people call the job: the dataset folder's name unless given
     uploaded_images: list[int] = field(default_factory=list)  # indices of the images stored, before start
+    #: Why the calibration (lights, intensities, mask) looks wrong, from the input folder and from the
+    #: checks after the solve (worker.calibration); empty when nothing is suspect.
+    calibration: list[str] = field(default_factory=list)
 
     @property
     def solved_share(self) -> float | None:
@@ -153,6 +156,7 @@ class JobRecord:
             )
         if self.state is JobState.DONE and self.pixels_total == 0:
             out.append("the mask selects no pixel: nothing was solved")
+        out.extend(f"calibration suspect: {c}" for c in self.calibration)
         return out
 
     def to_json(self) -> dict[str, Any]:

@@ -37,9 +37,12 @@ def format_status(st: dict[str, Any]) -> str:
         parts.append(f"ETA {_hms(p.get('eta_seconds'))}")
     if st["state"] in FINAL_STATES and p.get("pixels_done"):
         unfinished = max(p.get("pixels_total", 0) - p.get("pixels_done", 0), 0)
-        parts.append(
-            share_words(p.get("solved_share"), p.get("certified_share"), unfinished, p.get("pixels_total", 0))
+        shares = share_words(
+            p.get("solved_share"), p.get("certified_share"), unfinished, p.get("pixels_total", 0)
         )
+        if st.get("calibration"):  # an optimum proved for wrong lights is still wrong
+            shares += " but calibration suspect (see the warnings)"
+        parts.append(shares)
     if st.get("eps") is not None:
         parts.append(f"eps {st['eps']:.4g}")
     line = "  ".join(parts)

@@ -120,6 +120,11 @@ class JobStatus(BaseModel):
     eps: float | None = Field(None, description="the eps used (known once eps=auto is estimated)")
     progress: Progress
     warnings: list[str] = Field(default_factory=list, description="what a user must hear about the result")
+    calibration: list[str] = Field(
+        default_factory=list,
+        description="why the lights, intensities or mask look wrong (also in warnings); a result with "
+        "any is not to be trusted even where certified optimal",
+    )
     results: ResultsInfo
     links: Links
     uploaded: int | list[int] | None = Field(

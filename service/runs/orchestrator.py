@@ -43,13 +43,14 @@ async def run_job(
     fair: FairShare | None = None,
     user: str = "",
     tile_time_limit: float | None = None,
-    finish: Callable[[Path], None] | None = None,
+    finish: Callable[[Path], list[str] | None] | None = None,
 ) -> JobRecord:
     """Run (or resume) every unfinished tile of a job; return its final record.
 
     ``finish(job_dir)`` runs (in a thread) after the last tile and before the job is
-    recorded done, so a client that sees ``done`` also sees previews and depth; if it
-    fails, the job is still done (the arrays stand) and the failure is logged.
+    recorded done, so a client that sees ``done`` also sees previews and depth; what it
+    returns is the record's ``calibration`` (the checks that found the inputs suspect). If
+    it fails, the job is still done (the arrays stand) and the failure is logged.
 
     The job ends ``done``, ``failed`` (with a reason) or ``cancelled`` (a cancel
     flag was set in the store). If this coroutine itself is cancelled without a
@@ -147,7 +148,7 @@ async def run_job(
         await asyncio.to_thread(run.check_complete)
         if finish is not None:
             try:
-                await asyncio.to_thread(finish, run.job_dir)
+                rec.calibration = list(await asyncio.to_thread(finish, run.job_dir) or ())
             except Exception:
                 log.exception("job %s: previews or depth failed; the results stand", rec.id)
         run.done()
