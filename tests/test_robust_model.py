@@ -252,3 +252,22 @@ def test_solve_defaults_are_the_cli_and_http_defaults() -> None:
     b = solve(sc.images.astype(np.uint8), sc.lights, sc.mask, model="robust", eps="auto")
     np.testing.assert_array_equal(a.normal, b.normal)
     assert a.eps == b.eps
+
+
+def test_near_mirror_rule_needs_a_lobe_before_it_rejects_an_image() -> None:
+    """Noise alone makes some near-mirror images of a Lambertian pixel brighter than one sigma;
+    without a lobe (their mean excess within 2 standard errors of 0) none is rejected."""
+    from maxfs.worker.outliers import half_vectors, near_mirror
+
+    L = synthetic.lights_uniform(48)
+    N = np.array([0.0, 0.0, 1.0])
+    close = half_vectors(L) @ N > np.cos(np.radians(20.0))
+    assert close.sum() >= 4
+    S = np.tile(L @ N * 100.0, (2, 1))
+    idx = np.flatnonzero(close)
+    S[0, idx[0]] += 1.5  # one image 1.5 sigma bright, the others 1 sigma dark: noise, mean excess ~0
+    S[0, idx[1:]] -= 1.0
+    S[1, idx] += 1.5  # every near-mirror image 1.5 sigma bright: a lobe
+    out = near_mirror(S, np.ones_like(S, dtype=bool), L, 20.0, 1.0, n_first=np.tile(N * 100.0, (2, 1)))
+    assert not out[0].any()
+    np.testing.assert_array_equal(out[1], close)

@@ -5,9 +5,11 @@
 normal ``n0`` per pixel (least trimmed squares over its lit candidates,
 :func:`worker.noise.lts_fit`) tells which images those are; a lit candidate is an outlier
 by definition when ``angle(n0, h_i) < mirror_deg`` *and* it is brighter than ``n0``
-predicts by more than the noise (``eps / 3``, one sigma): a Lambertian pixel keeps its
-near-mirror images (they fit), a glossy one loses the lobe even where it fits within the
-tolerance. The rule never starves a pixel: it removes at most ``m - MIN_KEPT`` of its
+predicts by more than the noise (``eps / 3``, one sigma) *and* the pixel has a lobe: the mean
+excess of its near-mirror images is more than :data:`LOBE_Z` standard errors above zero (a
+one-sided test). A Lambertian pixel keeps its near-mirror images (noise scatters them around
+the fit, and one sigma alone would reject about one in six), a glossy one loses the lobe even
+where it fits within the tolerance. The rule never starves a pixel: it removes at most ``m - MIN_KEPT`` of its
 ``m`` lit candidates (the largest excesses first), so a pixel with few images keeps them.
 """
 
@@ -20,6 +22,8 @@ from maxfs.worker.noise import lts_fit
 
 #: A pixel keeps at least this many lit candidates (twice the 3 unknowns of ``n``).
 MIN_KEPT = 6
+#: A pixel has a lobe when its near-mirror images' mean excess is this many standard errors above 0.
+LOBE_Z = 2.0
 VIEW = np.array([0.0, 0.0, 1.0])
 
 
@@ -68,7 +72,14 @@ def near_mirror(
         return out
     res = S[rows] - n0 @ L.T
     close = (n0 / rho[:, None]) @ half_vectors(L).T > np.cos(np.radians(mirror_deg))
-    cand = lit[rows] & close & (res > excess)
+    cone = lit[rows] & close
+    # a lobe first: the pixel's near-mirror images must be brighter than the first pass on
+    # average, beyond what noise gives (one-sided z-test of their mean excess at 2 sigma of the
+    # mean); a Lambertian pixel's images scatter around it and keep every image
+    n_c = cone.sum(axis=1)
+    mean_res = np.where(n_c > 0, (np.where(cone, res, 0.0)).sum(axis=1) / np.maximum(n_c, 1), 0.0)
+    glossy = mean_res > LOBE_Z * excess / np.sqrt(np.maximum(n_c, 1))
+    cand = cone & (res > excess) & glossy[:, None]
     # never leave fewer than MIN_KEPT: keep the smallest excesses of the ones over the cap
     cap = m[rows] - MIN_KEPT
     over = cand.sum(axis=1) > cap
