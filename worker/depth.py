@@ -62,6 +62,9 @@ MIN_NZ = 0.087
 _MIN_WEIGHT = 1e-5
 #: bini's solves stop here at the latest: its weights change more than this between iterations anyway.
 _BINI_CG_TOL = 1e-6
+#: Strength threshold of the AMG's aggregation: edges bini has all but cut are not "strong", so
+#: aggregates stay on one side of a jump.
+_THETA = 0.1
 
 
 @dataclass(frozen=True)
@@ -220,14 +223,18 @@ def _solve(N, b: NDArray, x0: NDArray | None, tol: float) -> tuple[NDArray[np.fl
     import pyamg
     import scipy.sparse.linalg
 
-    # theta > 0: edges bini has all but cut are not "strong", so aggregates stay on one side of a jump
     # weighting "local": the prolongation smoother's scaling from row sums, not from a spectral radius
     # estimated from a random start, so that the same normals give the same depth bit for bit
     # symmetry "symmetric": the restriction is the prolongator's transpose view, not a copy
+    strength = ("symmetric", {"theta": _THETA})
+    if _all_strong(N, _THETA):
+        # every edge is strong (ls: unit weights), so the fine level's strength graph is the matrix
+        # itself: no copy of it (the same aggregates as pyamg's own strength)
+        strength = [(None, {}), strength]
     ml = pyamg.smoothed_aggregation_solver(
         N,
         symmetry="symmetric",
-        strength=("symmetric", {"theta": 0.1}),
+        strength=strength,
         smooth=("jacobi", {"omega": 4.0 / 3.0, "weighting": "local"}),
         improve_candidates=None,
     )
@@ -245,6 +252,13 @@ def _solve(N, b: NDArray, x0: NDArray | None, tol: float) -> tuple[NDArray[np.fl
     # scipy's CG (pyamg's warns and stops once the residual of this singular system is at rounding level)
     z, _ = scipy.sparse.linalg.cg(N, b, x0=x0, rtol=tol, maxiter=500, M=M, callback=step)
     return z, count[0]
+
+
+def _all_strong(N, theta: float) -> bool:
+    """Whether each off-diagonal entry passes pyamg's symmetric strength test
+    ``|a_ij| >= theta * sqrt(a_ii * a_jj)``, checked against the largest diagonal."""
+    off = N.data[N.data < 0]
+    return off.size == 0 or float(-off.max()) >= theta * float(N.diagonal().max())
 
 
 def _pieces(dom: NDArray[np.bool_]) -> tuple[int, NDArray[np.int32]]:
