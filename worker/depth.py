@@ -36,6 +36,7 @@ Slopes are clipped where the normal is nearly perpendicular to the view (``nz`` 
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -221,7 +222,6 @@ def _solve(N, b: NDArray, x0: NDArray | None, tol: float) -> tuple[NDArray[np.fl
     (float32: half the memory of the hierarchy, and a preconditioner needs no more) on the (singular,
     consistent) Laplacian."""
     import pyamg
-    import scipy.sparse.linalg
 
     # weighting "local": the prolongation smoother's scaling from row sums, not from a spectral radius
     # estimated from a random start, so that the same normals give the same depth bit for bit
@@ -243,15 +243,64 @@ def _solve(N, b: NDArray, x0: NDArray | None, tol: float) -> tuple[NDArray[np.fl
     def precondition(r: NDArray) -> NDArray:
         return cycle.matvec(r.astype(N.dtype)).astype(np.float64)
 
-    M = scipy.sparse.linalg.LinearOperator(N.shape, matvec=precondition, dtype=np.float64)
-    count = [0]
+    return _cg(N, b, x0, tol, precondition)
 
-    def step(_: NDArray) -> None:
-        count[0] += 1
 
-    # scipy's CG (pyamg's warns and stops once the residual of this singular system is at rounding level)
-    z, _ = scipy.sparse.linalg.cg(N, b, x0=x0, rtol=tol, maxiter=500, M=M, callback=step)
-    return z, count[0]
+def _cg(N, b: NDArray, x0: NDArray | None, tol: float, precondition, maxiter: int = 500):
+    """Preconditioned conjugate gradients in float64 on a float32 matrix, stopping at a relative
+    residual ``tol``; ``b`` is overwritten (it becomes the residual). Written out rather than scipy's
+    ``cg`` for memory: the matrix-vector product goes a block of rows at a time, so float64 copies of
+    the matrix's values are a block's, not the whole matrix's; and it holds four vectors and no more."""
+    from scipy.linalg.blas import daxpy
+
+    n = N.shape[0]
+    bounds = np.linspace(0, n, 9).astype(np.int64)  # 8 blocks of rows
+    blocks = []
+    for lo, hi in itertools.pairwise(bounds):
+        s, e = int(N.indptr[lo]), int(N.indptr[hi])
+        ptr = N.indptr[lo : hi + 1] - N.indptr[lo]
+        blocks.append((lo, hi, type(N)((N.data[s:e], N.indices[s:e], ptr), shape=(hi - lo, n))))
+
+    def matvec(v: NDArray) -> NDArray:
+        out = np.empty(n)
+        for lo, hi, blk in blocks:
+            out[lo:hi] = blk @ v
+        return out
+
+    bnorm = float(np.linalg.norm(b))
+    if x0 is None:
+        x = np.zeros(n)
+    else:
+        x = np.array(x0, dtype=np.float64)
+        daxpy(matvec(x), b, a=-1.0)
+    r = b
+    if bnorm == 0.0 or float(np.linalg.norm(r)) <= tol * bnorm:
+        return x, 0
+    p = precondition(r)
+    rz = float(np.dot(r, p))
+    its = 0
+    while its < maxiter:
+        its += 1
+        q = matvec(p)
+        pq = float(np.dot(p, q))
+        # p can be all but a null vector of this singular matrix (a constant per piece): pq is then
+        # rounding noise of either sign, and the step along p harmless, as in scipy's cg
+        if pq == 0.0:
+            break
+        alpha = rz / pq
+        daxpy(p, x, a=alpha)
+        daxpy(q, r, a=-alpha)
+        del q
+        if float(np.linalg.norm(r)) <= tol * bnorm:
+            break
+        z = precondition(r)
+        rz, rz_old = float(np.dot(r, z)), rz
+        if rz_old == 0.0:
+            break
+        daxpy(p, z, a=rz / rz_old)
+        p = z
+        del z
+    return x, its
 
 
 def _all_strong(N, theta: float) -> bool:
