@@ -18,9 +18,11 @@ from pathlib import Path
 
 from maxfs.service import settings as settings_module
 from maxfs.service.settings import ENV_PREFIX, Settings
-from maxfs.storage.options import INTRINSICS, SOLVE_OPTIONS
+from maxfs.storage.options import INTRINSICS, SOLVE_OPTIONS, ModelDefaults
 from maxfs.storage.outputs import OUTPUT_TABLE
 
+#: Options whose unset value is the model's (:class:`maxfs.storage.options.ModelDefaults`).
+MODEL_FIELDS = frozenset(f.name for f in dataclasses.fields(ModelDefaults))
 MARK = re.compile(r"(<!-- generated: (\w+) -->\n)(.*?)(<!-- end generated -->)", re.S)
 
 
@@ -66,14 +68,13 @@ def settings_table() -> str:
 def options_table() -> str:
     rows = ["| option (CLI flag, HTTP field) | kind | default | what |", "|---|---|---|---|"]
     for o in SOLVE_OPTIONS:
-        kind = " / ".join(o.choices) if o.choices else o.kind
-        unset = (
-            "none (orthographic)"
-            if o.name in INTRINSICS
-            else "none"
-            if o.name == "distance"
-            else "the model's"
-        )
+        kind = " / ".join(o.choices) if o.choices else o.kind.replace("|", " or ")
+        if o.name in MODEL_FIELDS or o.name == "shadow":
+            unset = "the model's"
+        elif o.name in INTRINSICS or o.name == "distance":
+            unset = "none (orthographic)" if o.name in INTRINSICS else "none"
+        else:
+            unset = "see what"
         default = unset if o.default is None else str(o.default)
         rows.append(f"| `{o.flag}`, `{o.name}` | {kind} | {default} | {o.help.replace('|', '/')} |")
     return "\n".join(rows) + "\n"

@@ -50,6 +50,9 @@ class Dataset:
     #: Files the dataset is read from (images, mask, lights): their fingerprint lets a
     #: re-run recognise unchanged inputs without decoding them again.
     files: tuple[Path, ...] = ()
+    #: What looks wrong about the folder's calibration files (:func:`folder_notes`): an expected
+    #: file missing, or text files the layout does not read (a misnamed intensities file).
+    notes: tuple[str, ...] = ()
     #: How the user knows image ``i``: "image 10 (010.png)", numbered from 1 like ``--images``
     #: (empty: "image N" alone, for stacks in one file).
     image_labels: tuple[str, ...] = ()
@@ -159,6 +162,34 @@ def _existing(paths: list[Path], folder: Path, *names: str) -> tuple[Path, ...]:
     return (*paths, *(folder / n for n in names if (folder / n).exists()))
 
 
+#: Text files no layout reads but a dataset folder may well hold.
+_HARMLESS_TEXT = ("readme", "license", "licence", "notes", "citation")
+
+
+def folder_notes(folder: Path, known: tuple[str, ...], expected: tuple[str, ...] = ()) -> tuple[str, ...]:
+    """Calibration files that look wrong in ``folder``: ``*.txt`` files the layout does not read
+    (``known`` are those it reads; a README or LICENSE is fine) and ``expected`` files missing."""
+    notes = []
+    for n in expected:
+        if not (folder / n).is_file():
+            notes.append(
+                f"{folder.name} has no {n}: every light is taken as equally bright; the DiLiGenT layout "
+                f"gives each light's intensity there (k lines of R G B); add it unless the lights "
+                "really are equal"
+            )
+    unknown = sorted(
+        p.name
+        for p in folder.glob("*.txt")
+        if p.name not in known and not p.name.lower().startswith(_HARMLESS_TEXT)
+    )
+    if unknown:
+        notes.append(
+            f"{folder.name} holds {', '.join(unknown)}, which maxfs does not read (it reads "
+            f"{', '.join(known)}); if it holds light intensities or directions, rename it"
+        )
+    return tuple(notes)
+
+
 def labels(paths: list[Path]) -> tuple[str, ...]:
     """``image N (file name)`` for each of ``paths``, N from 1 (see :meth:`Dataset.label`)."""
     return tuple(f"image {i + 1} ({p.name})" for i, p in enumerate(paths))
@@ -172,6 +203,10 @@ def _probe(name: str, layout: str, k: int, reader: Callable[[int], NDArray], **k
     if mask is not None and mask.shape != (h, w):
         raise DatasetError(f"{name}: mask is {mask.shape[0]} x {mask.shape[1]} but images are {h} x {w}")
     return Dataset(name, layout, k, h, w, ch, str(first.dtype), _reader=reader, mask=mask, **kw)
+
+
+#: The text files of the DiLiGenT layout.
+DILIGENT_TEXT = ("filenames.txt", "light_directions.txt", "light_intensities.txt")
 
 
 def diligent(folder: Path) -> Dataset:
@@ -198,6 +233,7 @@ def diligent(folder: Path) -> Dataset:
         intensities=inten,
         mask=mask,
         files=_existing(paths, folder, "mask.png", "light_directions.txt", "light_intensities.txt"),
+        notes=folder_notes(folder, DILIGENT_TEXT, expected=("light_intensities.txt",)),
         image_labels=labels(paths),
     )
     if inten is not None and ds.channels is None:
@@ -282,6 +318,7 @@ def npy_stack(folder: Path) -> Dataset:
             "mask.npy",
             "mask.png",
         ),
+        notes=folder_notes(folder, ("lights.txt", "intensities.txt")),
     )
 
 

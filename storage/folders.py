@@ -29,6 +29,7 @@ from maxfs.storage.datasets import (
     _mask_from,
     _probe,
     _read_matrix,
+    folder_notes,
     labels,
     read_image,
 )
@@ -45,6 +46,7 @@ from maxfs.storage.options import (
 IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".tga", ".bmp", ".jpg", ".jpeg")
 LIGHT_FILES = ("light_directions.txt", "lights.txt", "lights.npy")
 INTENSITY_FILES = ("light_intensities.txt", "intensities.txt")
+TEXT_FILES = tuple(n for n in (*LIGHT_FILES, *INTENSITY_FILES) if n.endswith(".txt"))
 
 
 def _natural_key(name: str) -> list:
@@ -128,6 +130,7 @@ def tiff_stack(folder: Path, path: Path) -> Dataset:
         intensities=inten,
         mask=mask,
         files=_existing([path, *used], folder, "mask.png"),
+        notes=folder_notes(folder, TEXT_FILES),
     )
 
 
@@ -157,6 +160,7 @@ def plain_folder(folder: Path) -> Dataset:
         intensities=inten,
         mask=mask,
         files=_existing([*paths, *used], folder, "mask.png"),
+        notes=folder_notes(folder, TEXT_FILES),
         image_labels=labels(paths),
     )
 
@@ -205,6 +209,7 @@ def select_images(ds: Dataset, indices: list[int]) -> Dataset:
         mask=ds.mask,
         _reader=lambda i: reader(idx[i]),
         files=(),  # no file fingerprint: the same files with another choice are other inputs
+        notes=ds.notes,
         image_labels=tuple(ds.label(j) for j in idx),  # as numbered in the folder
     )
 

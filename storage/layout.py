@@ -54,6 +54,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import threading
 import time
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
@@ -116,6 +117,8 @@ CHANNEL_NAMES = {None: ("grey",), 3: ("r", "g", "b")}  # as maxfs.Result.to_xarr
 MASK_WRITING = bytes([0xFF]) * DIGEST_BYTES
 RUNS_LOG = "maxfs-runs.log"
 CANCEL_FLAG = "maxfs-cancel"
+#: Folder of running tiles' progress: a file per tile holding its masked pixels solved so far.
+PROGRESS_DIR = "maxfs-progress"
 #: Zarr v3 ``dimension_names`` of the arrays that are not outputs (``images`` gets ``channel`` last for
 #: colour input); the outputs' are in :data:`storage.outputs.OUTPUT_TABLE`. So ``xarray.open_zarr``
 #: reads a store as a Dataset with named dimensions.
@@ -666,6 +669,8 @@ class JobStore:
         for p in sorted(self.path.rglob("*")):
             if not p.is_file() or p.name.startswith(".") or p.name == CANCEL_FLAG:
                 continue
+            if p.parent.name == PROGRESS_DIR:
+                continue
             if any(s == p or s in p.parents for s in skip):
                 continue
             out.append((p, p.relative_to(self.path).as_posix()))
@@ -692,6 +697,42 @@ class JobStore:
                     t = int(parts[2].removeprefix("tile="))
                     counts[t] = counts.get(t, 0) + 1
         return counts
+
+    # -- progress inside running tiles -----------------------------------------------------------
+    def note_tile_progress(self, tile_index: int, pixels: int) -> None:
+        """Record that a running tile has solved ``pixels`` of its masked pixels (a small file,
+        replaced atomically; any worker process may write it, the runner sums them)."""
+        d = self.path / PROGRESS_DIR
+        d.mkdir(exist_ok=True)
+        tmp = d / f".{tile_index}.{os.getpid()}.{threading.get_ident()}"
+        tmp.write_text(str(int(pixels)))
+        os.replace(tmp, d / str(tile_index))
+
+    def clear_tile_progress(self, tile_index: int | None = None) -> None:
+        """Forget one tile's progress note (it finished or stopped), or every tile's (a new run)."""
+        d = self.path / PROGRESS_DIR
+        if tile_index is not None:
+            (d / str(tile_index)).unlink(missing_ok=True)
+        elif d.is_dir():
+            for p in d.iterdir():
+                p.unlink(missing_ok=True)
+
+    def running_pixels(self, done: NDArray[np.bool_] | None = None) -> int:
+        """Masked pixels solved so far in tiles that have not finished (``done``: the done grid,
+        flattened, if the caller has it)."""
+        d = self.path / PROGRESS_DIR
+        if not d.is_dir():
+            return 0
+        grid = self.done_grid().ravel() if done is None else done
+        total = 0
+        for p in d.iterdir():
+            if not p.name.isdigit() or int(p.name) >= grid.size or grid[int(p.name)]:
+                continue
+            try:
+                total += int(p.read_text() or 0)
+            except (OSError, ValueError):  # replaced or removed while read: it counts next time
+                continue
+        return total
 
     def request_cancel(self) -> None:
         (self.path / CANCEL_FLAG).touch()

@@ -106,6 +106,7 @@ class JobRecord:
     tiles_done: int = 0
     pixels_total: int = 0  # pixels inside the mask
     pixels_done: int = 0  # ... in finished tiles
+    pixels_running: int = 0  # ... solved so far in tiles still running (progress inside a tile)
     certified_pixels: int = 0  # ... that got a normal whose optimum was proved
     solved_pixels: int = 0  # ... that got a normal
     pixel_rate: float | None = None  # pixels per second in this run
@@ -114,6 +115,9 @@ class JobRecord:
     label: str | None = None  # the client's name for the submission (maxfs submit resumes by it)
     name: str | None = None  # what people call the job: the dataset folder's name unless given
     uploaded_images: list[int] = field(default_factory=list)  # indices of the images stored, before start
+    #: Why the calibration (lights, intensities, mask) looks wrong, from the input folder and from the
+    #: checks after the solve (worker.calibration); empty when nothing is suspect.
+    calibration: list[str] = field(default_factory=list)
 
     @property
     def solved_share(self) -> float | None:
@@ -137,7 +141,7 @@ class JobRecord:
         """Seconds left at this run's pixel rate (active jobs only)."""
         if not (self.pixel_rate and self.state.active):
             return None
-        return max(self.pixels_total - self.pixels_done, 0) / self.pixel_rate
+        return max(self.pixels_total - self.pixels_done - self.pixels_running, 0) / self.pixel_rate
 
     def warnings(self) -> list[str]:
         """What a user must hear about a result that is technically complete."""
@@ -152,6 +156,7 @@ class JobRecord:
             )
         if self.state is JobState.DONE and self.pixels_total == 0:
             out.append("the mask selects no pixel: nothing was solved")
+        out.extend(f"calibration suspect: {c}" for c in self.calibration)
         return out
 
     def to_json(self) -> dict[str, Any]:

@@ -86,6 +86,7 @@ def test_badly_conditioned_lights_warn() -> None:
     assert w is not None and "badly conditioned" in w
 
 
+@pytest.mark.slow
 def test_cli_run_with_images_on_a_tiff_stack(tmp_path: Path) -> None:
     images, lights, _ = _scene(k=10, size=20)
     data = tmp_path / "data"

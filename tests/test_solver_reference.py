@@ -64,6 +64,7 @@ def test_exact_matches_milp_optimum(case: Case) -> None:
     assert (cnt < V.sum(axis=1)).sum() >= 5
 
 
+@pytest.mark.slow
 def test_random_arrangements_match_milp() -> None:
     """Random lights over the whole upper hemisphere and random outliers."""
     rng = np.random.default_rng(7)

@@ -309,6 +309,7 @@ STATUS_FIELDS = {
     *("id", "state", "owner", "created_at", "updated_at", "started_at", "finished_at", "error", "eps"),
     *("tiles_total", "tiles_done", "pixels_total", "pixels_done", "certified_pixels", "solved_pixels"),
     *("pixel_rate", "progress", "warnings", "results", "links", "uploaded", "k", "status_url"),
+    "calibration",
 }
 
 

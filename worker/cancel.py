@@ -33,11 +33,21 @@ class TileCancelled(JobCancelledError):
 
 
 class _Hook:
-    def __init__(self, check: Callable[[], str | None], interval: float) -> None:
+    def __init__(
+        self,
+        check: Callable[[], str | None],
+        interval: float,
+        report: Callable[[int, int], None] | None,
+        report_interval: float,
+    ) -> None:
         self.check, self.interval, self.next = check, interval, 0.0
+        self.report, self.report_interval, self.next_report = report, report_interval, 0.0
 
-    def __call__(self) -> None:
+    def __call__(self, done: int | None, total: int | None) -> None:
         now = time.monotonic()
+        if self.report is not None and done is not None and total and now >= self.next_report:
+            self.next_report = now + self.report_interval
+            self.report(done, total)
         if now < self.next:
             return
         self.next = now + self.interval
@@ -47,11 +57,18 @@ class _Hook:
 
 
 @contextmanager
-def cancel_points(check: Callable[[], str | None], interval: float = 0.5) -> Iterator[None]:
+def cancel_points(
+    check: Callable[[], str | None],
+    interval: float = 0.5,
+    report: Callable[[int, int], None] | None = None,
+    report_interval: float = 1.0,
+) -> Iterator[None]:
     """Within this block, :func:`checkpoint` calls ``check()`` (at most every ``interval`` s)
-    in this thread and raises :class:`TileCancelled` with its answer when it is not empty."""
+    in this thread and raises :class:`TileCancelled` with its answer when it is not empty;
+    ``report(done, total)`` hears how far the solve is (at most every ``report_interval`` s), so
+    a long tile shows progress before it finishes."""
     before = getattr(_local, "hook", None)
-    _local.hook = _Hook(check, interval)
+    _local.hook = _Hook(check, interval, report, report_interval)
     try:
         yield
     finally:
@@ -63,8 +80,9 @@ def active() -> bool:
     return getattr(_local, "hook", None) is not None
 
 
-def checkpoint() -> None:
-    """A cancel point: raise :class:`TileCancelled` if this thread's check says so."""
+def checkpoint(done: int | None = None, total: int | None = None) -> None:
+    """A cancel point: raise :class:`TileCancelled` if this thread's check says so; ``done`` of
+    ``total`` pixels are solved so far (reported to the block's ``report``)."""
     hook = getattr(_local, "hook", None)
     if hook is not None:
-        hook()
+        hook(done, total)

@@ -811,7 +811,7 @@ def exact_pixels(
         took = time.perf_counter() - t0
         s = e
         if s < P:
-            cancel.checkpoint()
+            cancel.checkpoint(s, P)
         if took < cancel.BATCH_SECONDS / 2:
             n *= 2
         elif took > 2 * cancel.BATCH_SECONDS:

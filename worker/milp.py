@@ -166,7 +166,7 @@ class MilpSolver:
         lo, hi = _bounds(np.asarray(I, dtype=np.float64), bounds)
         for p in range(P):
             if p:
-                checkpoint()  # a tile task notices a cancel between pixels (worker.cancel)
+                checkpoint(p, P)  # a tile task notices a cancel between pixels (worker.cancel)
             v = valid[p]
             if v.sum() < 3:
                 continue

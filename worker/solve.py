@@ -39,7 +39,7 @@ from maxfs.storage.outputs import TILE_OUTPUTS, Source
 from maxfs.storage.tiles import DEFAULT_TILE, Tile, tiles
 from maxfs.worker.lstsq import channel_albedo, normal_albedo, refit
 from maxfs.worker.noise import estimate_model
-from maxfs.worker.problem import Thresholds, make_thresholds, shading, usable
+from maxfs.worker.problem import MAX_INTENSITY, Thresholds, make_thresholds, shading, usable
 from maxfs.worker.solvers import SOLVERS, Batch
 
 
@@ -116,17 +116,28 @@ def solve_pixels(
     found = impl.search(Batch(I, S, L, th, act, outlier, max_nodes, milp_time_limit))
     point, inl, optimal, nodes, source = found.point, found.inliers, found.optimal, found.nodes, found.source
     # the refit is least squares on the lit inliers: a shadow inlier says L.n <= s, not L.n = I
-    # (it would pull n toward the shadow's value), so it counts for the optimum only
+    # (it would pull n toward the shadow's value), so it is a row only where the fit breaks it
     lit = inl & usable(I.T, th).T if impl.max_fs else inl
     n = refit(S, lit, L, MAX_LIGHT_CONDITION)  # a badly conditioned inlier set determines no normal
+    if impl.max_fs and th.shadow_slabs:
+        n = censored_refit(S, lit, inl & ~lit, L, n)
     if th.fallback and impl.max_fs:
-        need = np.flatnonzero(act & ~np.isfinite(n[:, 0]))
-        if need.size:  # least squares on the non-zero, unsaturated observations
-            fb = usable(I[need].T, _no_shadow(th)).T
+        # least squares on the non-zero unsaturated observations; where those do not
+        # determine a normal (a nearly black pixel), on every finite unsaturated one: a zero
+        # measures max(L.n, 0) too, and these are the rows the l2 baseline fits
+        for nonzero in (True, False):
+            need = np.flatnonzero(act & ~np.isfinite(n[:, 0]))
+            if not need.size:
+                break
+            if nonzero:
+                fb = usable(I[need].T, _no_shadow(th)).T
+            else:
+                with np.errstate(invalid="ignore"):
+                    fb = np.isfinite(I[need]) & (I[need] < np.minimum(th.saturation, MAX_INTENSITY))
             if outlier is not None:
                 fb &= ~outlier[need]
             nf = refit(S[need], fb, L, MAX_LIGHT_CONDITION)
-            got = np.isfinite(nf[:, 0])
+            got = np.isfinite(nf[:, 0]) & np.any(nf != 0.0, axis=1)  # all zeros: no direction
             n[need[got]] = nf[got]
             inl[need] = fb & got[:, None]
             lit[need] = inl[need]
@@ -144,6 +155,41 @@ def solve_pixels(
         rgb_s = shading(np.asarray(rgb, dtype=np.float64), th)
         albedo_rgb = channel_albedo(rgb_s, lit & solved[:, None], L, normal)
     return PixelResult(normal, albedo, albedo_rgb, inl, count, optimal, point, nodes, source)
+
+
+#: Active-set rounds of :func:`censored_refit` (it settles in two or three).
+CENSORED_ROUNDS = 8
+
+
+def censored_refit(
+    S: NDArray[np.float64],
+    lit: NDArray[np.bool_],
+    dark: NDArray[np.bool_],
+    L: NDArray[np.float64],
+    n: NDArray[np.float64],
+) -> NDArray[np.float64]:
+    """Least squares of the sensor model ``s = max(L.n, 0)`` over the inliers: a lit inlier
+    costs ``(L.n - s)^2``, a shadow inlier (``dark``) ``max(L.n - s, 0)^2``, so it pulls only
+    where the fit would light it. Solved from ``n`` (the lit fit) by active sets: the shadow
+    rows ``L.n > s`` join the lit rows, refit, until the active set stops changing. Where the
+    lit fit satisfies every shadow inlier (the Max-FS point always does) it is returned as is;
+    few lit images (small k) are where it breaks them."""
+    rows = np.flatnonzero(dark.any(axis=1) & np.isfinite(n[:, 0]))
+    if not rows.size:
+        return n
+    n = n.copy()
+    Sr, lr, dr = S[rows], lit[rows], dark[rows]
+    nr = n[rows]
+    active = np.zeros_like(dr)
+    for _ in range(CENSORED_ROUNDS):
+        new = dr & (nr @ L.T > Sr)
+        if np.array_equal(new, active):
+            break
+        active = new
+        fit = refit(Sr, lr | active, L, MAX_LIGHT_CONDITION)
+        nr = np.where(np.isfinite(fit[:, :1]), fit, nr)
+    n[rows] = nr
+    return n
 
 
 def _no_shadow(th: Thresholds) -> Thresholds:

@@ -21,9 +21,13 @@ from maxfs.storage.errors import StoreError
 from maxfs.storage.layout import JobStore
 from maxfs.storage.options import Estimate
 from maxfs.storage.tiles import Tile
+from maxfs.worker import calibration
 from maxfs.worker.cancel import TileCancelled, cancel_points
 from maxfs.worker.problem import make_thresholds
-from maxfs.worker.solve import estimate_job, solve_tile
+from maxfs.worker.solve import eps_sample, estimate_job, solve_tile
+
+#: Seconds between two progress notes of a running tile (its solved pixels so far).
+PROGRESS_SECONDS = 1.0
 
 
 class TileStatus(StrEnum):
@@ -104,7 +108,12 @@ def compute_tile(
         return None
 
     try:
-        with cancel_points(stop_reason):
+        active = int(mask.sum())
+
+        def report(done: int, total: int) -> None:
+            store.note_tile_progress(tile_index, active * done // total)
+
+        with cancel_points(stop_reason, report=report, report_interval=PROGRESS_SECONDS):
             res = solve_tile(
                 raw,
                 spec.lights,
@@ -116,11 +125,13 @@ def compute_tile(
                 milp_time_limit=params.milp_time_limit,
             )
     except TileCancelled as e:
+        store.clear_tile_progress(tile_index)
         store.log_run(tile_index, str(e))
         return TileOutcome(tile_index, TileStatus(str(e)), pixels=mask.size)
     solved = np.isfinite(res.normal[..., 0]) & mask
     stats = (int(mask.sum()), int(solved.sum()), int((res.optimal & solved).sum()))
     store.write_tile(t, res.outputs(), token, stats)
+    store.clear_tile_progress(tile_index)
     store.log_run(tile_index, "done")
     return TileOutcome(
         tile_index,
@@ -228,3 +239,36 @@ def load_kernels(
     finally:
         finished.set()
     return KernelLoad(time.perf_counter() - t0, cache_misses(ds) > before)
+
+
+def check_calibration(
+    store: JobStore,
+    read_images: Callable[[Tile], NDArray] | None = None,
+    normal: NDArray | None = None,
+) -> list[calibration.Finding]:
+    """Every calibration check (:mod:`worker.calibration`) on a finished job: the lights alone, the
+    lights against the data on the fixed sample of the eps estimate (``read_images`` as for
+    :func:`compute_tile`), the solved ``normal`` (read from the store when not given) and, without
+    a mask, the share of background pixels."""
+    spec = store.spec
+    read = read_images or store.read_tile_images
+    obs = store.observation_model
+    out = [calibration.lights_facing(spec.lights)]
+    has_mask = store.mask_state() != "default"
+    picks = eps_sample((spec.height, spec.width), store.read_mask() if has_mask else None)
+    if picks:
+        raw = np.concatenate([read(t)[:, ys, xs] for t, ys, xs in picks], axis=1)
+        grey, _, saturated = obs.prepare(raw)
+        out += calibration.light_checks(grey, np.isfinite(grey) & ~saturated, spec.lights)
+        if not has_mask:
+            out.append(calibration.no_mask(grey.max(axis=1), _dark_level(grey, obs.step)))
+    n = store.read_output("normal") if normal is None else normal
+    out += [calibration.normals_facing(n), calibration.flip_integrability(n)]
+    return out
+
+
+def _dark_level(grey: NDArray, step: float | None) -> float:
+    """What no lit surface stays under in every image: 2 % of the sample's 99th percentile, and
+    at least two quantisation steps for integer input."""
+    top = float(np.nanpercentile(grey, 99)) if grey.size else 0.0
+    return max(calibration.DARK_SHARE * top, 2.0 * (step or 0.0))

@@ -140,9 +140,9 @@ def _dataset(args: argparse.Namespace) -> Any:
     ds = load_folder(args.folder)
     if getattr(args, "images", None):
         ds = select_images(ds, parse_selection(args.images, ds.k))
-    warning = conditioning_warning(ds.lights)
-    if warning:
-        print(f"maxfs: WARNING: {warning}", file=sys.stderr)
+    for warning in (conditioning_warning(ds.lights), *ds.notes):
+        if warning:
+            print(f"maxfs: WARNING: {warning}", file=sys.stderr)
     return ds
 
 
@@ -212,7 +212,18 @@ def shares(rec: Any) -> str:
     """'solved 99.1 %, certified optimal 98.7 %' for a record: shares of all masked pixels."""
     from maxfs.service.cli.verbs import share_words
 
-    return share_words(rec.solved_share, rec.certified_share, rec.unfinished_pixels, rec.pixels_total)
+    return share_words(
+        rec.solved_share, rec.certified_share, rec.unfinished_pixels, rec.pixels_total
+    ) + suspect(rec.calibration)
+
+
+def suspect(calibration: list[str]) -> str:
+    """' but calibration suspect: ...' after a certified share when a calibration check tripped
+    (an optimum proved for wrong lights is still wrong), naming the first reason."""
+    if not calibration:
+        return ""
+    more = f" (and {len(calibration) - 1} more, below)" if len(calibration) > 1 else ""
+    return f" but calibration suspect: {calibration[0].split(':')[0]}{more}"
 
 
 def _warn(rec: Any) -> None:

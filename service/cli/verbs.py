@@ -37,9 +37,12 @@ def format_status(st: dict[str, Any]) -> str:
         parts.append(f"ETA {_hms(p.get('eta_seconds'))}")
     if st["state"] in FINAL_STATES and p.get("pixels_done"):
         unfinished = max(p.get("pixels_total", 0) - p.get("pixels_done", 0), 0)
-        parts.append(
-            share_words(p.get("solved_share"), p.get("certified_share"), unfinished, p.get("pixels_total", 0))
+        shares = share_words(
+            p.get("solved_share"), p.get("certified_share"), unfinished, p.get("pixels_total", 0)
         )
+        if st.get("calibration"):  # an optimum proved for wrong lights is still wrong
+            shares += " but calibration suspect (see the warnings)"
+        parts.append(shares)
     if st.get("eps") is not None:
         parts.append(f"eps {st['eps']:.4g}")
     line = "  ".join(parts)
@@ -82,8 +85,8 @@ class Progress:
         eta: float | None = None,
         pixels: tuple[int, int] | None = None,
     ):
-        """Show ``done`` of ``total`` tiles; the share is of masked pixels in finished tiles when
-        ``pixels`` (done, total) is given (a tile's weight is the work in it), else of tiles."""
+        """Show ``done`` of ``total`` tiles; the share is of masked pixels solved (in finished tiles
+        and so far in running ones) when ``pixels`` (done, total) is given, else of tiles."""
         if self.closed:
             return
         if not total and state not in FINAL_STATES:
@@ -92,11 +95,23 @@ class Progress:
         if self.tty:
             from tqdm import tqdm
 
+            by_pixels = bool(pixels and pixels[1])
             if self.bar is None and total:
-                self.bar = tqdm(total=total, unit="tile", file=self.stream, dynamic_ncols=True, leave=True)
+                # by masked pixels when they are known: a long tile moves the bar before it ends
+                size, unit = (pixels[1], "px") if by_pixels else (total, "tile")  # type: ignore[index]
+                self.bar = tqdm(
+                    total=size,
+                    unit=unit,
+                    unit_scale=by_pixels,
+                    file=self.stream,
+                    dynamic_ncols=True,
+                    leave=True,
+                )
             if self.bar is not None:
-                self.bar.n = done
-                self.bar.set_postfix_str(info, refresh=False)
+                self.bar.n = min(pixels[0], self.bar.total) if by_pixels else done  # type: ignore[index]
+                self.bar.set_postfix_str(
+                    f"tiles {done}/{total}, {info}" if by_pixels else info, refresh=False
+                )
                 self.bar.refresh()
         else:
             frac = done / total if total else 0.0
@@ -121,16 +136,12 @@ class Progress:
     # adapters
     def record(self, rec: Any) -> None:
         """``on_progress`` for :func:`service.runs.local.run_store` (a JobRecord)."""
+        solved = rec.pixels_done + getattr(rec, "pixels_running", 0)
         eta = None
-        if rec.pixel_rate and rec.pixels_total > rec.pixels_done:
-            eta = (rec.pixels_total - rec.pixels_done) / rec.pixel_rate
+        if rec.pixel_rate and rec.pixels_total > solved:
+            eta = (rec.pixels_total - solved) / rec.pixel_rate
         self.update(
-            rec.tiles_done,
-            rec.tiles_total,
-            rec.state.value,
-            rec.pixel_rate,
-            eta,
-            (rec.pixels_done, rec.pixels_total),
+            rec.tiles_done, rec.tiles_total, rec.state.value, rec.pixel_rate, eta, (solved, rec.pixels_total)
         )
 
     def status(self, st: dict[str, Any]) -> None:
@@ -142,7 +153,7 @@ class Progress:
             st["state"],
             p.get("pixels_per_second"),
             p.get("eta_seconds"),
-            (p.get("pixels_done", 0), p.get("pixels_total", 0)),
+            (p.get("pixels_done", 0) + p.get("pixels_running", 0), p.get("pixels_total", 0)),
         )
 
 

@@ -53,12 +53,13 @@ class Progress(BaseModel):
     model_config = OPEN
 
     fraction: float = Field(
-        description="masked pixels in finished tiles / masked pixels (each tile weighs its work; "
-        "tiles done / tiles total while the mask is not counted); 0 before the first start"
+        description="masked pixels solved (in finished tiles, and so far in running ones) / masked "
+        "pixels (tiles done / tiles total while the mask is not counted); 0 before the first start"
     )
     tiles_done: int
     tiles_total: int
     pixels_done: int = Field(description="masked pixels in finished tiles")
+    pixels_running: int = Field(0, description="masked pixels solved so far in tiles still running")
     pixels_total: int = Field(description="masked pixels")
     pixels_per_second: float | None = Field(None, description="masked pixels per second in this run")
     eta_seconds: float | None = Field(None, description="seconds left at the current rate (running jobs)")
@@ -112,12 +113,18 @@ class JobStatus(BaseModel):
     tiles_done: int = 0
     pixels_total: int = 0
     pixels_done: int = 0
+    pixels_running: int = 0
     certified_pixels: int = 0
     solved_pixels: int = 0
     pixel_rate: float | None = None
     eps: float | None = Field(None, description="the eps used (known once eps=auto is estimated)")
     progress: Progress
     warnings: list[str] = Field(default_factory=list, description="what a user must hear about the result")
+    calibration: list[str] = Field(
+        default_factory=list,
+        description="why the lights, intensities or mask look wrong (also in warnings); a result with "
+        "any is not to be trusted even where certified optimal",
+    )
     results: ResultsInfo
     links: Links
     uploaded: int | list[int] | None = Field(
@@ -248,12 +255,15 @@ def status_body(
     body.pop("uploaded_images", None)  # the indices; "uploaded" (count) and "missing_images" say it
     frac = rec.tiles_done / rec.tiles_total if rec.tiles_total else 0.0
     if rec.pixels_total:  # a tile of the object's edge is less work than a full one
-        frac = rec.pixels_done / rec.pixels_total if rec.state is not JobState.DONE else 1.0
+        # solved pixels of running tiles count too: one large tile does not sit at 0 % for minutes
+        done = rec.pixels_done + (rec.pixels_running if rec.state.active else 0)
+        frac = min(done / rec.pixels_total, 1.0) if rec.state is not JobState.DONE else 1.0
     body["progress"] = {
         "fraction": frac,
         "tiles_done": rec.tiles_done,
         "tiles_total": rec.tiles_total,
         "pixels_done": rec.pixels_done,
+        "pixels_running": rec.pixels_running if rec.state.active else 0,
         "pixels_total": rec.pixels_total,
         "pixels_per_second": rec.pixel_rate,
         "eta_seconds": rec.eta_seconds,

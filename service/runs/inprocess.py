@@ -64,7 +64,10 @@ def run_in_process(
         futures = {pool.submit(compute_tile, run.store, t.index, digest, reader): t for t in todo}
         try:
             while futures:
-                finished, _ = wait(futures, return_when=FIRST_COMPLETED)
+                # wake at least every progress interval: a long tile reports how far it is
+                finished, _ = wait(futures, timeout=progress_interval, return_when=FIRST_COMPLETED)
+                if not finished:
+                    run.tick()
                 for fut in finished:
                     t = futures.pop(fut)
                     try:

@@ -54,6 +54,7 @@ class JobRun:
     # -- the steps, in order ----------------------------------------------------------------------
     def queue(self) -> None:
         self.store.clear_cancel()
+        self.store.clear_tile_progress()  # notes of an earlier, interrupted run
         self.rec.state, self.rec.error, self.rec.finished_at = JobState.QUEUED, None, None
         self.save()
 
@@ -95,10 +96,12 @@ class JobRun:
             self.counter.add(out)
         self.tick()
 
-    def tick(self) -> None:
-        """Save the record if the last save is older than the progress interval."""
+    def tick(self, running: int | None = None) -> None:
+        """Save the record if the last save is older than the progress interval, with the pixels
+        solved so far in running tiles (``running``, or read from the store now)."""
         now = time.monotonic()
         if now - self._last_save >= self.interval:
+            self.rec.pixels_running = self.store.running_pixels() if running is None else running
             self.save()
             self._last_save = now
 
@@ -114,6 +117,7 @@ class JobRun:
 
     # -- how it ends ------------------------------------------------------------------------------
     def done(self) -> JobRecord:
+        self.rec.pixels_running = 0
         self.rec.state, self.rec.finished_at = JobState.DONE, time.time()
         self.save()
         return self.rec

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import logging
 import shutil
 from collections.abc import Callable
 from pathlib import Path
@@ -27,6 +28,9 @@ from maxfs.storage.layout import GROUP_DIR, JobSpec, JobStore, array_digest, is_
 from maxfs.storage.params import JobParams
 from maxfs.storage.records import JobRecord, JobState, load_record, save_record
 from maxfs.storage.stack import StackReader
+from maxfs.storage.tiles import Tile
+
+log = logging.getLogger("maxfs.local")
 
 #: Said when numba misses its cache while loading the solver kernels: they are being compiled.
 COMPILING = (
@@ -173,15 +177,21 @@ def run_store(
     on_progress: ProgressFn | None = None,
 ) -> JobRecord:
     """Run every unfinished tile of the store at ``out`` on a Dask cluster (the embedded
-    one, SLURM worker jobs, or ``scheduler``); write previews and derived results when done."""
+    one, SLURM worker jobs, or ``scheduler``); write previews and derived results when done,
+    and the calibration checks' findings into the record."""
     rec = asyncio.run(_run(Path(out), cluster_settings(scheduler, workers, cluster), on_progress))
     if rec.state is JobState.DONE:
-        finish(Path(out))
+        rec.calibration = finish(Path(out))
+        save_record(Path(out), rec)
     return rec
 
 
-def finish(out: Path, timings: Timings | None = None) -> None:
-    """What a finished job gets besides its arrays: previews, depth (:mod:`service.results.research`)."""
+def finish(
+    out: Path, timings: Timings | None = None, read_images: Callable[[Tile], NDArray] | None = None
+) -> list[str]:
+    """What a finished job gets besides its arrays: PNG previews, depth (see :mod:`service.results.research`),
+    and the calibration checks (:func:`worker.task.check_calibration`; ``read_images`` as there).
+    Returns what those checks found suspect, for the record's ``calibration``."""
     from maxfs.service.results.research import finish_results
 
     tm = timings or Timings()
@@ -189,6 +199,20 @@ def finish(out: Path, timings: Timings | None = None) -> None:
         write_previews(JobStore.open(out, mode="r"))
     with tm.phase("depth and derived results"):
         finish_results(out)
+    with tm.phase("calibration checks"):
+        return calibration_messages(out, read_images)
+
+
+def calibration_messages(out: Path, read_images: Callable[[Tile], NDArray] | None = None) -> list[str]:
+    """The messages of the calibration checks that tripped on the finished job at ``out``."""
+    from maxfs.worker.task import check_calibration  # imports the solver module: only once a job is done
+
+    try:
+        found = check_calibration(JobStore.open(out, mode="r"), read_images)
+    except Exception as e:  # the results stand; a user must still hear that nothing was checked
+        log.exception("calibration checks of %s failed", out)
+        return [f"the calibration checks could not run ({type(e).__name__}: {e})"]
+    return [f"{f.check}: {f.message}" for f in found if f.message]
 
 
 def run_folder(
@@ -245,10 +269,14 @@ def run_folder(
                         pass
             rec = run_in_process(out, threads=workers, images=images, on_progress=on_progress, timings=tm.add)
         else:
+            images = None
             with tm.phase("cluster run (start, tiles, stop)"):
                 rec = asyncio.run(_run(out, settings, on_progress))
         if rec.state is JobState.DONE:
-            finish(out, tm)
+            stack = images
+            reader = None if stack is None else (lambda t: stack[:, t.y0 : t.y1, t.x0 : t.x1])
+            rec.calibration = [*(f"input folder: {n}" for n in ds.notes), *finish(out, tm, reader)]
+            save_record(out, rec)
         return store, rec
 
 

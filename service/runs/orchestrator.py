@@ -43,13 +43,14 @@ async def run_job(
     fair: FairShare | None = None,
     user: str = "",
     tile_time_limit: float | None = None,
-    finish: Callable[[Path], None] | None = None,
+    finish: Callable[[Path], list[str] | None] | None = None,
 ) -> JobRecord:
     """Run (or resume) every unfinished tile of a job; return its final record.
 
     ``finish(job_dir)`` runs (in a thread) after the last tile and before the job is
-    recorded done, so a client that sees ``done`` also sees previews and depth; if it
-    fails, the job is still done (the arrays stand) and the failure is logged.
+    recorded done, so a client that sees ``done`` also sees previews and depth; what it
+    returns is the record's ``calibration`` (the checks that found the inputs suspect). If
+    it fails, the job is still done (the arrays stand) and the failure is logged.
 
     The job ends ``done``, ``failed`` (with a reason) or ``cancelled`` (a cancel
     flag was set in the store). If this coroutine itself is cancelled without a
@@ -61,6 +62,7 @@ async def run_job(
     run.queue()
     log.info("job %s of %s queued: checking that a worker sees its store", rec.id, user or "-")
     futures: dict[str, object] = {}
+    ticker: asyncio.Task | None = None
     held = 0  # ranks of this job's tiles in its user's backlog (service.runs.fairness), not yet released
     try:
         # a worker must see this very store (a shared filesystem) before any task reads it
@@ -113,6 +115,7 @@ async def run_job(
             await asyncio.sleep(0)
         # wait on a window of futures at a time (in submission order, topped up as they finish):
         # as_completed on thousands at once runs thousands of callbacks in one loop turn
+        ticker = asyncio.create_task(_tick(run, progress_interval))
         queue = list(futures.values())
         window = as_completed(queue[:WAIT_WINDOW])
         nxt = WAIT_WINDOW
@@ -141,10 +144,11 @@ async def run_job(
                     fair.release(user)
                     held -= 1
             run.record(out, tile_time_limit)
+        ticker.cancel()
         await asyncio.to_thread(run.check_complete)
         if finish is not None:
             try:
-                await asyncio.to_thread(finish, run.job_dir)
+                rec.calibration = list(await asyncio.to_thread(finish, run.job_dir) or ())
             except Exception:
                 log.exception("job %s: previews or depth failed; the results stand", rec.id)
         run.done()
@@ -176,8 +180,21 @@ async def run_job(
         log.warning("job %s failed: %s", rec.id, e)
         return rec
     finally:
+        if ticker is not None:
+            ticker.cancel()
         if fair is not None and held:
             fair.release(user, held)
+
+
+async def _tick(run: JobRun, interval: float) -> None:
+    """Save the record every ``interval`` while tiles run, with the progress inside running tiles
+    (a job of a few long tiles would otherwise show nothing until one finishes)."""
+    while True:
+        await asyncio.sleep(interval)
+        try:
+            run.tick(await asyncio.to_thread(run.store.running_pixels))
+        except Exception:  # progress is a courtesy: a failed save shows next time, or the run fails
+            log.debug("job %s: progress save failed", run.rec.id, exc_info=True)
 
 
 async def _drop(client: Client, futures: dict) -> None:

@@ -55,6 +55,11 @@ async function api(path, options = {}) {
 }
 
 // -- formatting -------------------------------------------------------------------------------
+// a certified share means little when the calibration checks found the lights or mask suspect
+function suspect(job) {
+  return job.calibration && job.calibration.length ? " (calibration suspect)" : "";
+}
+
 function pct(x) {
   return x === null || x === undefined ? "–" : (100 * x).toFixed(1) + " %";
 }
@@ -171,7 +176,7 @@ function renderTable() {
     cell(row, 4).textContent = rate(p.pixels_per_second);
     cell(row, 5).textContent = job.state === "running" || job.state === "queued" ? hms(p.eta_seconds) : "–";
     cell(row, 6).textContent = pct(p.solved_share);
-    cell(row, 7).textContent = pct(p.certified_share);
+    cell(row, 7).textContent = pct(p.certified_share) + suspect(job);
     cell(row, 8).textContent = when(job.created_at);
     row.classList.toggle("selected", job.id === page.selected);
     order.push(row);
@@ -212,11 +217,11 @@ function renderDetail() {
   const stats = [
     ["Owner", job.owner],
     ["Tiles", tiles(p)],
-    ["Pixels", `${p.pixels_done} / ${p.pixels_total}`],
+    ["Pixels solved", `${p.pixels_done + (p.pixels_running || 0)} / ${p.pixels_total}`],
     ["Pixels/s", rate(p.pixels_per_second)],
     ["ETA", job.state === "running" || job.state === "queued" ? hms(p.eta_seconds) : "–"],
     ["Solved", pct(p.solved_share)],
-    ["Certified", pct(p.certified_share)],
+    ["Certified", pct(p.certified_share) + suspect(job)],
     ["eps", job.eps === null || job.eps === undefined ? "–" : job.eps.toPrecision(4)],
     ["Created", when(job.created_at)],
     ["Started", when(job.started_at)],
