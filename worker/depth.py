@@ -26,8 +26,9 @@ surface is not pulled across the jump. An edge's two one-sided equations add up 
 so both methods solve the same weighted graph Laplacian, and ``bini`` starts from ``ls`` (all weights 1/2).
 
 Solver: the normal equations are a weighted graph Laplacian on the domain's pixels (5 non-zeros a row),
-built straight in CSR form and solved by conjugate gradients preconditioned with smoothed-aggregation
-algebraic multigrid (pyamg) to a relative residual ``tol``; memory and time are linear in pixels. Each
+built straight in CSR form (float32 values, int32 indices) and solved by conjugate gradients in float64
+preconditioned with smoothed-aggregation algebraic multigrid (pyamg, float32) to a relative residual ``tol``;
+memory and time are linear in pixels. Each
 connected piece's free constant is fixed afterwards (mean 0, or the distance in perspective).
 
 Slopes are clipped where the normal is nearly perpendicular to the view (``nz`` or ``den`` below
