@@ -5,7 +5,8 @@
 
 Time and memory: a hemisphere's normals filling most of a square (synthetic normals are enough: the
 solver's work does not depend on the shape), ``ls``; peak memory is tracemalloc's peak during
-:func:`worker.depth.integrate` (numpy's and scipy's arrays, the normals given excluded), per masked pixel.
+:func:`worker.depth.integrate` (numpy's and scipy's arrays, the normals given excluded; the modules it
+imports are loaded by a small run first), per masked pixel.
 Accuracy: RMS depth error after the best offset per region (the normals do not say how far apart a
 step's two sides are) and, in perspective, the best scale too; at the steps (within 3 pixels of one)
 and away from them; then the orthographic and the perspective model on perspective scenes.
@@ -31,6 +32,9 @@ def scaling(sizes: list[float], method: str) -> None:
     print(f"\n{method}: time and peak memory of the depth step against pixels")
     print("| pixels (M) | masked (M) | seconds | s per M masked | peak MB | bytes / masked px | CG its |")
     print("|---:|---:|---:|---:|---:|---:|---:|")
+    # a small run first: the lazy imports (scipy, pyamg) are a fixed cost, not memory per pixel
+    warm = S.sphere_ortho(32)
+    integrate(warm.normal, warm.mask, method=method)
     for mpx in sizes:
         side = int(np.sqrt(mpx * 1e6) + 0.5)
         sc = S.sphere_ortho(side, radius=0.7 * side)

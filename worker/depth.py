@@ -26,8 +26,9 @@ surface is not pulled across the jump. An edge's two one-sided equations add up 
 so both methods solve the same weighted graph Laplacian, and ``bini`` starts from ``ls`` (all weights 1/2).
 
 Solver: the normal equations are a weighted graph Laplacian on the domain's pixels (5 non-zeros a row),
-built straight in CSR form and solved by conjugate gradients preconditioned with smoothed-aggregation
-algebraic multigrid (pyamg) to a relative residual ``tol``; memory and time are linear in pixels. Each
+built straight in CSR form (float32 values, int32 indices) and solved by conjugate gradients in float64
+preconditioned with smoothed-aggregation algebraic multigrid (pyamg, float32) to a relative residual ``tol``;
+memory and time are linear in pixels. Each
 connected piece's free constant is fixed afterwards (mean 0, or the distance in perspective).
 
 Slopes are clipped where the normal is nearly perpendicular to the view (``nz`` or ``den`` below
@@ -36,6 +37,7 @@ Slopes are clipped where the normal is nearly perpendicular to the view (``nz`` 
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -62,6 +64,9 @@ MIN_NZ = 0.087
 _MIN_WEIGHT = 1e-5
 #: bini's solves stop here at the latest: its weights change more than this between iterations anyway.
 _BINI_CG_TOL = 1e-6
+#: Strength threshold of the AMG's aggregation: edges bini has all but cut are not "strong", so
+#: aggregates stay on one side of a jump.
+_THETA = 0.1
 
 
 @dataclass(frozen=True)
@@ -139,9 +144,9 @@ def slopes(normal: NDArray[np.floating], min_nz: float = MIN_NZ) -> tuple[NDArra
     return -n[..., 0] / nz, n[..., 1] / nz
 
 
-def _structure(dom: NDArray[np.bool_]) -> tuple[NDArray[np.int32], NDArray[np.int32], NDArray[np.int32]]:
-    """Index map and the 4-neighbour edges of the domain: ``idx`` (H, W) int32 (-1 outside), the first
-    pixel of each horizontal edge (the second is the next index) and the two ends of each vertical edge."""
+def _structure(dom: NDArray[np.bool_]) -> tuple[NDArray[np.int32], NDArray[np.int32]]:
+    """The 4-neighbour edges of the domain (pixels numbered in raster order): the first pixel of each
+    horizontal edge (the second is the next index) and the two ends of each vertical edge."""
     H, W = dom.shape
     npx = int(dom.sum())
     idx = np.full((H, W), -1, dtype=np.int32)
@@ -150,10 +155,11 @@ def _structure(dom: NDArray[np.bool_]) -> tuple[NDArray[np.int32], NDArray[np.in
     pair = dom[:-1, :] & dom[1:, :]
     va = idx[:-1, :][pair]
     vb = idx[1:, :][pair]
-    return idx, ha, np.stack([va, vb])
+    del idx
+    return ha, np.stack([va, vb])
 
 
-def _laplacian(npx: int, ha: NDArray, vab: NDArray, wh: NDArray, wv: NDArray):
+def _laplacian(npx: int, ha: NDArray, vab: NDArray, wh: NDArray, wv: NDArray, dtype=np.float64):
     """The weighted graph Laplacian ``A^T W A`` in CSR, built straight from the edges: row ``i`` holds
     its up, left, self, right and down neighbours, already in column order (raster indices)."""
     import scipy.sparse
@@ -177,7 +183,7 @@ def _laplacian(npx: int, ha: NDArray, vab: NDArray, wh: NDArray, wv: NDArray):
     del up, left
     nnz = int(indptr[-1])
     indices = np.empty(nnz, dtype=itype)
-    data = np.empty(nnz, dtype=np.float64)
+    data = np.empty(nnz, dtype=dtype)
     indices[self_slot] = np.arange(npx, dtype=itype)
     diag = np.bincount(ha, weights=wh, minlength=npx)
     diag += np.bincount(ha + 1, weights=wh, minlength=npx)
@@ -213,34 +219,129 @@ def _rhs(npx: int, ha: NDArray, vab: NDArray, gh: NDArray, gv: NDArray) -> NDArr
 
 
 def _solve(N, b: NDArray, x0: NDArray | None, tol: float) -> tuple[NDArray[np.float64], int]:
-    """CG with a smoothed-aggregation AMG preconditioner on the (singular, consistent) Laplacian."""
+    """CG in float64 preconditioned by smoothed-aggregation AMG (pyamg) in the matrix's precision
+    (float32: half the memory of the hierarchy, and a preconditioner needs no more) on the (singular,
+    consistent) Laplacian."""
     import pyamg
-    import scipy.sparse.linalg
 
-    # theta > 0: edges bini has all but cut are not "strong", so aggregates stay on one side of a jump
     # weighting "local": the prolongation smoother's scaling from row sums, not from a spectral radius
     # estimated from a random start, so that the same normals give the same depth bit for bit
+    # symmetry "symmetric": the restriction is the prolongator's transpose view, not a copy
+    strength = ("symmetric", {"theta": _THETA})
+    if _all_strong(N, _THETA):
+        # every edge is strong (ls: unit weights), so the fine level's strength graph is the matrix
+        # itself: no copy of it (the same aggregates as pyamg's own strength)
+        strength = [(None, {}), strength]
     ml = pyamg.smoothed_aggregation_solver(
         N,
-        symmetry="hermitian",
-        strength=("symmetric", {"theta": 0.1}),
+        symmetry="symmetric",
+        strength=strength,
         smooth=("jacobi", {"omega": 4.0 / 3.0, "weighting": "local"}),
+        improve_candidates=None,
     )
-    count = [0]
+    cycle = ml.aspreconditioner()
 
-    def step(_: NDArray) -> None:
-        count[0] += 1
+    def precondition(r: NDArray) -> NDArray:
+        return cycle.matvec(r.astype(N.dtype)).astype(np.float64)
 
-    # scipy's CG (pyamg's warns and stops once the residual of this singular system is at rounding level)
-    z, _ = scipy.sparse.linalg.cg(N, b, x0=x0, rtol=tol, maxiter=500, M=ml.aspreconditioner(), callback=step)
-    return z, count[0]
+    return _cg(N, b, x0, tol, precondition)
 
 
-def _pieces(N) -> tuple[int, NDArray[np.int32]]:
-    import scipy.sparse.csgraph
+def _cg(N, b: NDArray, x0: NDArray | None, tol: float, precondition, maxiter: int = 500):
+    """Preconditioned conjugate gradients in float64 on a float32 matrix, stopping at a relative
+    residual ``tol``; ``b`` is overwritten (it becomes the residual). Written out rather than scipy's
+    ``cg`` for memory: the matrix-vector product goes a block of rows at a time, so float64 copies of
+    the matrix's values are a block's, not the whole matrix's; and it holds four vectors and no more."""
+    from scipy.linalg.blas import daxpy
 
-    n, lab = scipy.sparse.csgraph.connected_components(N, directed=False)
-    return int(n), lab.astype(np.int32)
+    n = N.shape[0]
+    bounds = np.linspace(0, n, 9).astype(np.int64)  # 8 blocks of rows
+    blocks = []
+    for lo, hi in itertools.pairwise(bounds):
+        s, e = int(N.indptr[lo]), int(N.indptr[hi])
+        ptr = N.indptr[lo : hi + 1] - N.indptr[lo]
+        blocks.append((lo, hi, type(N)((N.data[s:e], N.indices[s:e], ptr), shape=(hi - lo, n))))
+
+    def matvec(v: NDArray) -> NDArray:
+        out = np.empty(n)
+        for lo, hi, blk in blocks:
+            out[lo:hi] = blk @ v
+        return out
+
+    bnorm = float(np.linalg.norm(b))
+    if x0 is None:
+        x = np.zeros(n)
+    else:
+        x = np.array(x0, dtype=np.float64)
+        daxpy(matvec(x), b, a=-1.0)
+    r = b
+    if bnorm == 0.0 or float(np.linalg.norm(r)) <= tol * bnorm:
+        return x, 0
+    p = precondition(r)
+    rz = float(np.dot(r, p))
+    its = 0
+    while its < maxiter:
+        its += 1
+        q = matvec(p)
+        pq = float(np.dot(p, q))
+        # p can be all but a null vector of this singular matrix (a constant per piece): pq is then
+        # rounding noise of either sign, and the step along p harmless, as in scipy's cg
+        if pq == 0.0:
+            break
+        alpha = rz / pq
+        daxpy(p, x, a=alpha)
+        daxpy(q, r, a=-alpha)
+        del q
+        if float(np.linalg.norm(r)) <= tol * bnorm:
+            break
+        z = precondition(r)
+        rz, rz_old = float(np.dot(r, z)), rz
+        if rz_old == 0.0:
+            break
+        daxpy(p, z, a=rz / rz_old)
+        p = z
+        del z
+    return x, its
+
+
+def _all_strong(N, theta: float) -> bool:
+    """Whether each off-diagonal entry passes pyamg's symmetric strength test
+    ``|a_ij| >= theta * sqrt(a_ii * a_jj)``, checked against the largest diagonal."""
+    off = N.data[N.data < 0]
+    return off.size == 0 or float(-off.max()) >= theta * float(N.diagonal().max())
+
+
+def _pieces(dom: NDArray[np.bool_]) -> tuple[int, NDArray[np.int32]]:
+    """Connected pieces of the domain under 4-neighbour edges (every edge has a weight > 0), and each
+    domain pixel's piece in raster order."""
+    import scipy.ndimage
+
+    lab, n = scipy.ndimage.label(dom, structure=[[0, 1, 0], [1, 1, 1], [0, 1, 0]])
+    return int(n), (lab[dom] - 1).astype(np.int32, copy=False)
+
+
+def _targets(
+    n: NDArray, dom: NDArray[np.bool_], camera: Camera | None, min_nz: float
+) -> tuple[NDArray, NDArray, NDArray, NDArray]:
+    """Per domain pixel (raster order): the unknown's slopes along columns and rows, and the scales
+    that turn a difference of the unknown into pixel-like units (bini's one-sided differences)."""
+    nd = n[dom].astype(np.float64)  # (npx, 3)
+    if camera is None:
+        sc = np.maximum(nd[:, 2], min_nz)
+        return -nd[:, 0] / sc, nd[:, 1] / sc, sc, sc
+    H, W = dom.shape
+    u, v = camera.rays(H, W)
+    rows, cols = np.nonzero(dom)
+    den = nd[:, 2] - nd[:, 0] * u[0, cols] - nd[:, 1] * v[rows, 0]
+    del rows, cols
+    den = np.maximum(den, min_nz)
+    pc, pr = nd[:, 0] / (camera.fx * den), -nd[:, 1] / (camera.fy * den)
+    return pc, pr, camera.fx * den, camera.fy * den
+
+
+def _trapezoid(ha: NDArray, vab: NDArray, pc: NDArray, pr: NDArray) -> tuple[NDArray, NDArray]:
+    """The ls targets: the mean of an edge's two slopes."""
+    return 0.5 * (pc[ha] + pc[ha + 1]), 0.5 * (pr[vab[0]] + pr[vab[1]])
 
 
 def _bini_weights(
@@ -334,31 +435,19 @@ def integrate(
         return DepthResult(
             depth, method.value, DESCRIPTIONS[method], units, 0.0, 0.0, 0, 0, 0, min_nz, cam, tol
         )
-    nd = n[dom].astype(np.float64)  # (npx, 3), raster order
-    if camera is None:
-        sc = np.maximum(nd[:, 2], min_nz)
-        pc, pr = -nd[:, 0] / sc, nd[:, 1] / sc
-        sr = sc
-    else:
-        u, v = camera.rays(H, W)
-        rows, cols = np.nonzero(dom)
-        den = nd[:, 2] - nd[:, 0] * u[0, cols] - nd[:, 1] * v[rows, 0]
-        del rows, cols
-        den = np.maximum(den, min_nz)
-        pc, pr = nd[:, 0] / (camera.fx * den), -nd[:, 1] / (camera.fy * den)
-        sc, sr = camera.fx * den, camera.fy * den  # pixel-like units of a log-depth difference
-    del nd
-    idx, ha, vab = _structure(dom)
-    del idx
+    # one code path for both methods: the ls solve (bini's start) holds only the matrix, its right-hand
+    # side and the solver; the slopes and edges are made again afterwards, which is cheaper than keeping them
+    ha, vab = _structure(dom)
+    pc, pr, _, _ = _targets(n, dom, camera, min_nz)
+    rhs = _rhs(npx, ha, vab, *_trapezoid(ha, vab, pc, pr))
+    del pc, pr
+    N = _laplacian(npx, ha, vab, np.ones(ha.size), np.ones(vab.shape[1]), np.float32)
+    del ha, vab
+    z, cg = _solve(N, rhs, None, tol)
+    del N, rhs
+    ha, vab = _structure(dom)
     va, vb = vab
-    # the trapezoidal targets of ls; bini's are weighted means of the same two slopes
-    th = 0.5 * (pc[ha] + pc[ha + 1])
-    tv = 0.5 * (pr[va] + pr[vb])
-    wh = np.ones(ha.size)
-    wv = np.ones(va.size)
-    N = _laplacian(npx, ha, vab, wh, wv)
-    pieces, lab = _pieces(N)
-    z, cg = _solve(N, _rhs(npx, ha, vab, th, tv), None, tol)
+    pc, pr, sc, sr = _targets(n, dom, camera, min_nz)
     iterations = 0
     if method == DepthMethod.BINI:
         # the paper's equations are scaled by the cosine of the view (nz, or den in perspective):
@@ -374,9 +463,11 @@ def integrate(
             wv = np.maximum(a_v + b_v, _MIN_WEIGHT)
             gh = a_h * pc[ha] + b_h * pc[ha + 1]
             gv = a_v * pr[va] + b_v * pr[vb]
-            del N, a_h, b_h, a_v, b_v
-            N = _laplacian(npx, ha, vab, wh, wv)
+            del a_h, b_h, a_v, b_v
+            N = _laplacian(npx, ha, vab, wh, wv, np.float32)
+            del wh, wv
             z, its = _solve(N, _rhs(npx, ha, vab, gh, gv), z, max(tol, _BINI_CG_TOL))
+            del N, gh, gv
             cg += its
             hp, hm, vp, vm = _bini_weights(z, npx, ha, vab, sc, sr, k)
             new = _bini_energy(z, ha, vab, pc, pr, hp * qc[ha], hm * qc[ha + 1], vp * qr[va], vm * qr[vb])
@@ -385,23 +476,33 @@ def integrate(
             if done:
                 break
         params["iterations"] = iterations
-    del N
-    res = np.concatenate([(z[ha + 1] - z[ha]) - th, (z[vb] - z[va]) - tv])
-    if camera is not None:
-        res *= 0.5 * (camera.fx + camera.fy)
+    del sc, sr
+    # residuals of the ls equations, one direction at a time
+    sq, top, m = 0.0, 0.0, 0
+    for a, b, t in ((ha, ha + 1, 0.5 * (pc[ha] + pc[ha + 1])), (va, vb, 0.5 * (pr[va] + pr[vb]))):
+        res = (z[b] - z[a]) - t
+        del t
+        if camera is not None:
+            res *= 0.5 * (camera.fx + camera.fy)
+        if res.size:
+            sq += float(np.dot(res, res))
+            top = max(top, float(np.abs(res).max()))
+        m += res.size
+        del res
+    del pc, pr, ha, vab, va, vb
+    pieces, lab = _pieces(dom)
     counts = np.maximum(np.bincount(lab, minlength=pieces), 1)
     z -= (np.bincount(lab, weights=z, minlength=pieces) / counts)[lab]
     if camera is not None:
         z = -np.exp(z) * (1.0 if distance is None else distance)
     depth[dom] = z.astype(np.float32)
-    m = res.size
     return DepthResult(
         depth=depth,
         method=method.value,
         description=DESCRIPTIONS[method],
         units=units,
-        residual_rms=float(np.sqrt(np.mean(res**2))) if m else 0.0,
-        residual_max=float(np.abs(res).max()) if m else 0.0,
+        residual_rms=float(np.sqrt(sq / m)) if m else 0.0,
+        residual_max=top,
         equations=int(m),
         pixels=npx,
         pieces=pieces,
