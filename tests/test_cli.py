@@ -21,9 +21,10 @@ def _maxfs(*args: str, timeout: float = 300) -> subprocess.CompletedProcess:
     return subprocess.run([MAXFS, *args], capture_output=True, text=True, timeout=timeout)
 
 
-#: Share of object pixels expected to get a normal. The chrome sphere is a mirror
-#: (it is there to calibrate the lights): few of its pixels have 3 Lambertian views.
-SOLVED_SHARE = {obj: (0.95, 1.0) for obj in UW_OBJECTS} | {"chrome": (0.0, 0.3)}
+#: Share of object pixels expected to get a Max-FS normal (a consistent Lambertian set, source 1
+#: or 2). The chrome sphere is a mirror (it is there to calibrate the lights): few of its pixels
+#: have 3 Lambertian views; the robust model's least-squares fallback gives the others a fit.
+MAXFS_SHARE = {obj: (0.95, 1.0) for obj in UW_OBJECTS} | {"chrome": (0.0, 0.3)}
 
 
 # one object in the fast tier, the others with the slow one
@@ -40,8 +41,8 @@ def test_run_uw_object_writes_sane_outputs(tmp_path: Path, obj: str, uw_psm: Pat
     mask = g["mask"][...]
     normal = g["normal"][...][mask]
     solved = np.isfinite(normal[:, 0])
-    lo, hi = SOLVED_SHARE[obj]
-    assert lo <= solved.mean() <= hi
+    lo, hi = MAXFS_SHARE[obj]
+    assert lo <= np.isin(g["source"][...][mask], (1, 2)).mean() <= hi
     np.testing.assert_allclose(np.linalg.norm(normal[solved], axis=1), 1.0, atol=1e-5)
     if obj != "chrome":  # a diffuse visible surface faces the camera
         assert (normal[solved, 2] > 0).mean() > 0.97

@@ -9,7 +9,7 @@ callers can both warn and print the figure (``python -m bench.calibration``).
 * **lights facing away** (:func:`lights_facing`): the share of lights with ``z <= 0``. Light
   from behind the camera's side lights nothing the camera sees; a rig whose z points away
   from the camera (``z`` negated) has all of them there. Threshold: half.
-* **normals facing away** (:func:`normals_facing`): the share of solved normals with
+* **normals facing away** (:func:`normals_facing`): the share of solved (Max-FS) normals with
   ``n_z < 0``. A surface the camera sees faces it (``n_z >= 0``); noise at silhouettes
   makes a few per cent negative. Threshold: a quarter.
 * **image brightness vs light intensities** (:func:`light_checks`): on the fixed pixel sample
@@ -114,10 +114,17 @@ def lights_facing(lights: NDArray[np.floating]) -> Finding:
     return Finding(LIGHTS_CHECK, share, LIGHTS_BEHIND_SHARE, msg)
 
 
-def normals_facing(normal: NDArray[np.floating]) -> Finding:
-    """Share of solved normals (finite) with ``n_z < 0``."""
+def normals_facing(normal: NDArray[np.floating], source: NDArray[np.integer] | None = None) -> Finding:
+    """Share of solved normals (finite) with ``n_z < 0``; with ``source``, of the Max-FS normals
+    only (a consistent Lambertian set: codes 1 and 2) where there are any. The least-squares
+    fallback (code 3) fits whatever a pixel has (a mirror's glints, pure shadow) and says
+    nothing about the calibration."""
     nz = np.asarray(normal)[..., 2]
-    nz = nz[np.isfinite(nz)]
+    fine = np.isfinite(nz)
+    if source is not None:
+        maxfs = fine & np.isin(np.asarray(source), (1, 2))
+        fine = maxfs if maxfs.any() else fine
+    nz = nz[fine]
     if nz.size == 0:
         return Finding(NORMALS_CHECK, None, NORMALS_BEHIND_SHARE)
     share = float(np.mean(nz < 0.0))

@@ -263,7 +263,8 @@ def check_calibration(
         if not has_mask:
             out.append(calibration.no_mask(grey.max(axis=1), _dark_level(grey, obs.step)))
     n = store.read_output("normal") if normal is None else normal
-    out += [calibration.normals_facing(n), calibration.flip_integrability(n)]
+    src = store.read_output("source")
+    out += [calibration.normals_facing(n, src), calibration.flip_integrability(n)]
     return out
 
 
