@@ -41,7 +41,9 @@ class _Hook:
         report_interval: float,
     ) -> None:
         self.check, self.interval, self.next = check, interval, 0.0
-        self.report, self.report_interval, self.next_report = report, report_interval, 0.0
+        # the first report after one interval: a tile that ends sooner writes no progress note
+        self.report, self.report_interval = report, report_interval
+        self.next_report = time.monotonic() + report_interval
 
     def __call__(self, done: int | None, total: int | None) -> None:
         now = time.monotonic()

@@ -66,8 +66,6 @@ def run_in_process(
             while futures:
                 # wake at least every progress interval: a long tile reports how far it is
                 finished, _ = wait(futures, timeout=progress_interval, return_when=FIRST_COMPLETED)
-                if not finished:
-                    run.tick()
                 for fut in finished:
                     t = futures.pop(fut)
                     try:
@@ -75,6 +73,7 @@ def run_in_process(
                     except Exception as e:
                         raise RuntimeError(f"tile {t.index} failed: {type(e).__name__}: {e}") from e
                     run.record(out)
+                run.tick()
         finally:
             # on an error or Ctrl-C, queued tiles never start and nothing waits for running
             # ones: a tile counts only once its done marker is written, so none is lost

@@ -7,8 +7,8 @@ Both executors, threads in this process (:mod:`service.runs.inprocess`) and Dask
 2. :meth:`JobRun.use_eps` when eps is "auto" (:attr:`JobRun.needs_eps`), with the executor's estimate;
 3. :meth:`JobRun.prepare` (store reads: counts and the unfinished tiles, largest masked-pixel count
    first, since work, not tile count, is what the workers share), then :meth:`JobRun.running`;
-4. :meth:`JobRun.record` for every tile outcome (counts, a throttled record save, overtime and
-   cancel);
+4. :meth:`JobRun.record` for every tile outcome (counts, overtime and cancel) and
+   :meth:`JobRun.tick` for a throttled record save with the progress inside running tiles;
 5. :meth:`JobRun.check_complete` and :meth:`JobRun.done`, or :meth:`JobRun.fail` /
    :meth:`JobRun.cancelled` with the reason.
 
@@ -94,7 +94,11 @@ class JobRun:
             self.cancel_seen = True
         elif out.status is TileStatus.DONE and self.counter is not None:
             self.counter.add(out)
-        self.tick()
+
+    @property
+    def due(self) -> bool:
+        """Whether the last record save is older than the progress interval."""
+        return time.monotonic() - self._last_save >= self.interval
 
     def tick(self, running: int | None = None) -> None:
         """Save the record if the last save is older than the progress interval, with the pixels

@@ -144,6 +144,8 @@ async def run_job(
                     fair.release(user)
                     held -= 1
             run.record(out, tile_time_limit)
+            # no store read in the event loop: the timer (_tick) refreshes the running tiles' progress
+            run.tick(rec.pixels_running)
         ticker.cancel()
         await asyncio.to_thread(run.check_complete)
         if finish is not None:
@@ -191,6 +193,8 @@ async def _tick(run: JobRun, interval: float) -> None:
     (a job of a few long tiles would otherwise show nothing until one finishes)."""
     while True:
         await asyncio.sleep(interval)
+        if not run.due:  # tiles ending keep the record fresh; read the notes only when they do not
+            continue
         try:
             run.tick(await asyncio.to_thread(run.store.running_pixels))
         except Exception:  # progress is a courtesy: a failed save shows next time, or the run fails
