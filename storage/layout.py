@@ -3,7 +3,8 @@
 The job folder holds the group ``results.zarr/`` (nothing but Zarr, so xarray and
 other Zarr tools read it as it is) and, beside it, what is not Zarr: ``maxfs-job.json``
 (the record), ``maxfs-runs.log`` (one line per tile execution), ``maxfs-cancel`` (a flag
-that makes tile tasks stop) and ``previews/``. Arrays of ``results.zarr`` (``T`` = tile
+that makes tile tasks stop), ``maxfs-progress/`` (running tiles' solved pixels, while a run goes on) and
+``previews/``. Arrays of ``results.zarr`` (``T`` = tile
 edge, chunks are tile-aligned)::
 
     lights        (k, 3)          float64
@@ -51,6 +52,7 @@ reuses stale tiles. The store is created once, by the service or CLI, with mode
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import os
@@ -716,6 +718,8 @@ class JobStore:
         elif d.is_dir():
             for p in d.iterdir():
                 p.unlink(missing_ok=True)
+            with contextlib.suppress(OSError):  # a tile still writing one: the next run clears it
+                d.rmdir()
 
     def running_pixels(self, done: NDArray[np.bool_] | None = None) -> int:
         """Masked pixels solved so far in tiles that have not finished (``done``: the done grid,

@@ -121,6 +121,7 @@ class JobRun:
 
     # -- how it ends ------------------------------------------------------------------------------
     def done(self) -> JobRecord:
+        self.store.clear_tile_progress()
         self.rec.pixels_running = 0
         self.rec.state, self.rec.finished_at = JobState.DONE, time.time()
         self.save()
