@@ -9,7 +9,6 @@ from __future__ import annotations
 import os
 import socket
 import subprocess
-import threading
 import time
 from pathlib import Path
 
@@ -18,6 +17,7 @@ import numpy as np
 
 from maxfs.service.cli.client import MaxfsClient
 from maxfs.worker import synthetic
+from tests.attacks import slow_connections
 from tests.faults import fault_env
 
 
@@ -41,59 +41,29 @@ def slow_clients(url: str, token: str, n: int, addresses: int, header_timeout: f
     """``n`` connections from ``addresses`` loopback addresses (127.0.0.2, ...): half send a
     request head one line a second, half nothing. Meanwhile 50 authenticated requests from
     127.0.0.1, each on a new connection; then how long until the server closed them all."""
-    socks: list[socket.socket] = []
-    for i in range(n):
-        try:
-            s = socket.create_connection(
-                _addr(url), timeout=10, source_address=(f"127.0.0.{2 + i % addresses}", 0)
-            )
-        except OSError:
-            continue
-        if i % 2 == 0:
+    sources = [f"127.0.0.{2 + a}" for a in range(addresses)]
+    with slow_connections(_addr(url), n, sources, 1.0) as socks:
+        opened = time.monotonic()
+        took, codes = [], []
+        for _ in range(50):
+            t0 = time.perf_counter()
+            r = httpx.get(url + "/jobs", headers={"Authorization": f"Bearer {token}"}, timeout=60)
+            took.append(time.perf_counter() - t0)
+            codes.append(r.status_code)
+            time.sleep(0.02)
+        # how long until the server has closed every one (a read returns b"" or its 503 answer)
+        last, still = 0.0, 0
+        for s in socks:
+            s.settimeout(max(0.1, header_timeout + 10 - (time.monotonic() - opened)))
             try:
-                s.sendall(b"GET /jobs HTTP/1.1\r\nHost: x\r\n")
+                while s.recv(4096):
+                    pass
+            except TimeoutError:
+                still += 1
+                continue
             except OSError:
                 pass
-        socks.append(s)
-    opened = time.monotonic()
-    stop = threading.Event()
-
-    def drip() -> None:
-        k = 0
-        while not stop.wait(1.0):
-            k += 1
-            for s in socks[::2]:
-                try:
-                    s.sendall(f"X-{k}: y\r\n".encode())
-                except OSError:
-                    pass
-
-    t = threading.Thread(target=drip, daemon=True)
-    t.start()
-    took, codes = [], []
-    for _ in range(50):
-        t0 = time.perf_counter()
-        r = httpx.get(url + "/jobs", headers={"Authorization": f"Bearer {token}"}, timeout=60)
-        took.append(time.perf_counter() - t0)
-        codes.append(r.status_code)
-        time.sleep(0.02)
-    # how long until the server has closed every one (a read returns b"" or its 503 answer)
-    last, still = 0.0, 0
-    for s in socks:
-        s.settimeout(max(0.1, header_timeout + 10 - (time.monotonic() - opened)))
-        try:
-            while s.recv(4096):
-                pass
-        except TimeoutError:
-            still += 1
-            continue
-        except OSError:
-            pass
-        last = max(last, time.monotonic() - opened)
-    stop.set()
-    t.join(timeout=5)
-    for s in socks:
-        s.close()
+            last = max(last, time.monotonic() - opened)
     return {
         "attack": f"{len(socks)} slow/silent connections from {addresses} address(es)",
         "other client": f"{codes.count(200)}/50 answered 200; p50 {_pct(took, 50) * 1e3:.0f} ms, "

@@ -10,7 +10,6 @@ import errno
 import os
 import socket
 import subprocess
-import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -23,6 +22,7 @@ from distributed import Client
 from maxfs.service.cli.client import MaxfsClient
 from maxfs.service.http.connections import is_smuggling
 from maxfs.worker import synthetic
+from tests.attacks import slow_connections
 from tests.faults import fault_env
 from tests.procs import DaskCluster, Server, poll_until
 
@@ -98,30 +98,10 @@ def test_slow_and_silent_clients_do_not_lock_others_out(server: Server) -> None:
     request head one line every 0.5 s, half nothing. Another client's authenticated requests
     are answered at once meanwhile, and every slow connection is closed within the 2 s head
     deadline (plus slack), or refused at once past the per-address cap."""
-    addr = _addr(server)
-    socks: list[socket.socket] = []
-    for i in range(200):
-        s = socket.create_connection(addr, timeout=10, source_address=(OTHER_HOST, 0))
-        if i % 2 == 0:
-            s.sendall(b"GET /jobs HTTP/1.1\r\nHost: x\r\n")
-        socks.append(s)
-    opened = time.monotonic()
-    stop = threading.Event()
-
-    def drip() -> None:  # one more header line every 0.5 s on the slow half
-        n = 0
-        while not stop.wait(0.5):
-            n += 1
-            for s in socks[::2]:
-                try:
-                    s.sendall(f"X-Slow-{n}: y\r\n".encode())
-                except OSError:
-                    pass
-
-    t = threading.Thread(target=drip, daemon=True)
-    t.start()
     took: list[float] = []
-    try:
+    # one more header line every 0.5 s on the slow half
+    with slow_connections(_addr(server), 200, [OTHER_HOST], 0.5) as socks:
+        opened = time.monotonic()
         headers = {"Authorization": f"Bearer {server.tokens['alice']}"}
         for _ in range(20):  # a new connection each time, as a browser's or the CLI's first request
             t0 = time.perf_counter()
@@ -133,11 +113,6 @@ def test_slow_and_silent_clients_do_not_lock_others_out(server: Server) -> None:
         for s in socks:
             _, gone = _read_all(s, max(0.1, 6 - (time.monotonic() - opened)))
             closed.append(gone)
-    finally:
-        stop.set()
-        t.join(timeout=10)
-        for s in socks:
-            s.close()
     print(f"200 slow/silent connections: slowest of 20 answers {max(took) * 1e3:.0f} ms")
     assert max(took) < 1.0, took
     assert all(closed), f"{closed.count(False)} slow connections still open 6 s after they opened"
