@@ -17,15 +17,8 @@ import numpy as np
 
 from maxfs.service.cli.client import MaxfsClient
 from maxfs.worker import synthetic
-from tests.attacks import slow_connections
+from tests.attacks import finished_patch_job, proc_kb, slow_connections
 from tests.faults import fault_env
-
-
-def _kb(pid: int, key: str) -> int:
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        if line.startswith(key + ":"):
-            return int(line.split()[1])
-    return 0
 
 
 def _addr(url: str) -> tuple[str, int]:
@@ -75,21 +68,10 @@ def slow_clients(url: str, token: str, n: int, addresses: int, header_timeout: f
 def stalled_downloads(url: str, pid: int, owner: str, other: str, n: int) -> dict:
     """One user opens ``n`` downloads of a 12 MiB array and never reads; /health and another
     user's list are timed meanwhile, with the server's memory growth."""
-    H = W = 1024
-    patch = synthetic.sphere(6, 64)
     with MaxfsClient(url, token=owner, timeout=300) as c:
-        jid = c.create_job(k=6, height=H, width=W, lights=patch.lights.tolist(), eps=2.0)["id"]
-        for i in range(6):
-            img = np.zeros((H, W), np.uint8)
-            img[480:544, 480:544] = patch.images[i].astype(np.uint8)
-            c.upload_image(jid, i, img)
-        mask = np.zeros((H, W), bool)
-        mask[480:544, 480:544] = patch.mask
-        c.upload_mask(jid, mask)
-        c.start(jid)
-        c.wait(jid, poll=0.2, timeout=300)
+        jid = finished_patch_job(c, 1024, timeout=300)
     Path(f"/proc/{pid}/clear_refs").write_text("5")
-    before = _kb(pid, "VmRSS")
+    before = proc_kb(pid, "VmRSS")
     head = (
         f"GET /jobs/{jid}/results/normal.npy HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer {owner}\r\n\r\n"
     ).encode()
@@ -114,7 +96,7 @@ def stalled_downloads(url: str, pid: int, owner: str, other: str, n: int) -> dic
             httpx.get(url + "/health", timeout=60)
             o.jobs()
             took.append(time.perf_counter() - t0)
-    grew = (_kb(pid, "VmHWM") - before) / 1024
+    grew = (proc_kb(pid, "VmHWM") - before) / 1024
     for s in socks:
         s.close()
     return {

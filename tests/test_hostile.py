@@ -29,6 +29,7 @@ from distributed import Client
 
 from maxfs.service.cli.client import MaxfsClient
 from maxfs.worker import synthetic
+from tests.attacks import finished_patch_job, proc_kb
 from tests.badrequests import Bad, Req, check_refused, run_setup, send
 from tests.faults import fault_env
 from tests.loadgen import png_bomb
@@ -39,13 +40,6 @@ MB = 1 << 20
 HEALTH_S = 1.5
 
 # -- measuring ---------------------------------------------------------------------------------
-
-
-def _status_kb(pid: int, key: str) -> int:
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        if line.startswith(key + ":"):
-            return int(line.split()[1])
-    raise KeyError(key)
 
 
 @dataclass
@@ -66,7 +60,7 @@ def probe(server: Server, every: float = 0.05) -> Iterator[Probe]:
     above the RSS before the block (MB) and the slowest /health answer (s)."""
     pid = server.proc.pid
     Path(f"/proc/{pid}/clear_refs").write_text("5")  # VmHWM := VmRSS
-    before = _status_kb(pid, "VmRSS")
+    before = proc_kb(pid, "VmRSS")
     out, stop = Probe(), threading.Event()
 
     def poll() -> None:
@@ -84,7 +78,7 @@ def probe(server: Server, every: float = 0.05) -> Iterator[Probe]:
     finally:
         stop.set()
         t.join(timeout=60)
-        out.grew_mb = (_status_kb(pid, "VmHWM") - before) / 1024
+        out.grew_mb = (proc_kb(pid, "VmHWM") - before) / 1024
 
 
 def _check(p: Probe, mb: float, what: str) -> None:
@@ -586,19 +580,9 @@ def test_concurrent_uploads_cannot_eat_the_disk_reserve(cluster: DaskCluster, se
 def test_large_answers_stream_and_previews_are_bounded(server: Server) -> None:
     from maxfs.storage.layout import JobStore
 
-    H = W = 2048
-    patch = synthetic.sphere(6, 64)
+    H = 2048
     with _client(server, "lars") as c:
-        jid = c.create_job(k=6, height=H, width=W, lights=patch.lights.tolist(), eps=2.0)["id"]
-        for i in range(6):
-            img = np.zeros((H, W), np.uint8)
-            img[992:1056, 992:1056] = patch.images[i].astype(np.uint8)
-            c.upload_image(jid, i, img)
-        mask = np.zeros((H, W), bool)
-        mask[992:1056, 992:1056] = patch.mask
-        c.upload_mask(jid, mask)
-        c.start(jid)
-        assert c.wait(jid, poll=0.2, timeout=120)["state"] == "done"
+        jid = finished_patch_job(c, H)
         store = JobStore.open(server.data / "jobs" / jid, mode="r")
         hdr = _bearer(server.tokens["lars"])
 

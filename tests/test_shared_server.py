@@ -22,7 +22,7 @@ from distributed import Client
 from maxfs.service.cli.client import MaxfsClient
 from maxfs.service.http.connections import is_smuggling
 from maxfs.worker import synthetic
-from tests.attacks import slow_connections
+from tests.attacks import finished_patch_job, proc_kb, slow_connections
 from tests.faults import fault_env
 from tests.procs import DaskCluster, Server, poll_until
 
@@ -300,31 +300,13 @@ def test_a_newcomers_first_tiles_and_preparation_outrank_queued_batches() -> Non
 # -- 5. stalled downloads -----------------------------------------------------------------------
 
 
-def _rss_kb(pid: int, key: str) -> int:
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        if line.startswith(key + ":"):
-            return int(line.split()[1])
-    raise KeyError(key)
-
-
 @pytest.mark.slow
 def test_stalled_downloads_are_capped_per_user_and_dropped(server: Server) -> None:
-    H = W = 1024  # normal.npy: 12 MiB
-    patch = synthetic.sphere(6, 64)
     with _client(server, "dan") as c:
-        jid = c.create_job(k=6, height=H, width=W, lights=patch.lights.tolist(), eps=2.0)["id"]
-        for i in range(6):
-            img = np.zeros((H, W), np.uint8)
-            img[480:544, 480:544] = patch.images[i].astype(np.uint8)
-            c.upload_image(jid, i, img)
-        mask = np.zeros((H, W), bool)
-        mask[480:544, 480:544] = patch.mask
-        c.upload_mask(jid, mask)
-        c.start(jid)
-        assert c.wait(jid, poll=0.2, timeout=120)["state"] == "done"
+        jid = finished_patch_job(c, 1024)  # normal.npy: 12 MiB
     pid = server.proc.pid
     Path(f"/proc/{pid}/clear_refs").write_text("5")  # VmHWM := VmRSS
-    before = _rss_kb(pid, "VmRSS")
+    before = proc_kb(pid, "VmRSS")
     head = (
         f"GET /jobs/{jid}/results/normal.npy HTTP/1.1\r\nHost: x\r\n"
         f"Authorization: Bearer {server.tokens['dan']}\r\n\r\n"
@@ -348,7 +330,7 @@ def test_stalled_downloads_are_capped_per_user_and_dropped(server: Server) -> No
                 assert httpx.get(server.url + "/health", timeout=30).status_code == 200
                 other.jobs()
                 took.append(time.perf_counter() - t0)
-        grew = (_rss_kb(pid, "VmHWM") - before) / 1024
+        grew = (proc_kb(pid, "VmHWM") - before) / 1024
     finally:
         for s in socks:
             s.close()
