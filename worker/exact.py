@@ -317,7 +317,7 @@ def _sweep_bins(hs, he, nb, g, hd):  # pragma: no cover - numba
         below += he[b]
     if bmin < 0:
         return False, 0.0, 0.0
-    return True, -hd + bmin * w, min(-hd + (bmax + 1) * w, hd)
+    return True, -hd + bmin * w, hd if bmax == nb - 1 else -hd + (bmax + 1) * w
 
 
 @njit(cache=True, nogil=True)
