@@ -21,6 +21,22 @@ otherwise the box **shrinks** to the hull, first in z (the lights' common
 direction, where slabs are thinnest), then in x and y, and its slabs are
 re-classified from fresh dot products.
 
+In boxes with many crossing slabs (``_BIN_P``) the intervals are counted in
+bins instead (O(p) where keeping the extremes costs O(p g)); starts are binned
+rounded down and ends rounded up, so the binned hull holds the exact one.
+
+A box **one slab** from being pruned needs a point inside every crossing slab:
+a small LP (Seidel's incremental algorithm in 3-D, only the slab faces that
+cut the box) decides it, a point (recounted, a new incumbent) or none (pruned),
+where bisection would split it again and again along the faces. A box **two
+slabs** away with few crossing slabs (``_LP_GAP_P``) is decided the same way:
+where the LP has no point, its infeasible core (at most four slabs that with the
+box already hold none, from the constraints the algorithm was moving between)
+names the slabs one of which a better point must miss, and the LP runs again
+without each in turn. The LP widens every slab and the box by a margin far
+above rounding and calls near ties undecided (the box is then split as before),
+so it prunes only boxes that hold no better point.
+
 A box with at most three crossing slabs is solved exactly by enumerating the
 vertices of its crossing planes and faces, as is a box shrunk below ``hmin``,
 which keeps the search finite and exact in degenerate arrangements.
@@ -31,7 +47,8 @@ every usable light) before it is accepted. The cached, incrementally updated
 exactly on a slab face would then claim an inlier it does not hold, and pruning
 against that inflated count would discard the true optimum.
 
-The search is depth-first, better child first, seeded with good incumbents (the
+The search is depth-first, the child whose centre holds more slabs first (then
+the larger bound), seeded with good incumbents (the
 previous pixel's and, when given, the pixel above's solution, trimmed least
 squares, and alternating projections onto the slabs when least squares misses
 only a few usable images); it stops at once when an incumbent holds every usable
