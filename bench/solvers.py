@@ -31,7 +31,8 @@ Run: ``python -m bench.solvers`` (``--quick`` for a smaller run).
 from __future__ import annotations
 
 import argparse
-import importlib.util
+import importlib
+import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -161,15 +162,14 @@ def _cpu_ms(fn) -> tuple[float, object]:
 
 
 def load_baseline(path: Path) -> Callable:
-    """``exact_pixels`` of an earlier copy of ``worker/exact.py`` (its own numba cache)."""
-    spec = importlib.util.spec_from_file_location("exact_baseline", path)
-    if not path.is_file() or spec is None or spec.loader is None:
+    """``exact_pixels`` of an earlier copy of ``worker/exact.py``, imported by its file name
+    from its folder (numba's cache beside it can then load it again)."""
+    if not path.is_file() or path.suffix != ".py":
         raise SystemExit(
             f"--baseline {path}: no such Python file (e.g. git show main:worker/exact.py > {path})"
         )
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod.exact_pixels
+    sys.path.insert(0, str(path.resolve().parent))
+    return importlib.import_module(path.stem).exact_pixels
 
 
 def kernel_row(
