@@ -80,7 +80,6 @@ def _two_pieces(size: int = 72) -> tuple[np.ndarray, np.ndarray]:
 # -- the math -------------------------------------------------------------------------------------------
 def _graph(dom: np.ndarray, wh: np.ndarray, wv: np.ndarray) -> scipy.sparse.csr_matrix:
     """``A^T W A`` of the stencil's edges, assembled independently: pixel pairs from the grid."""
-    H, W = dom.shape
     idx = np.full(dom.shape, -1)
     idx[dom] = np.arange(int(dom.sum()))
     hw, vw = np.zeros(dom.shape), np.zeros(dom.shape)
@@ -107,7 +106,7 @@ def _weighted(seed: int, shape=(40, 52)) -> tuple[np.ndarray, np.ndarray, np.nda
     dom[-6:, -6:] = False
     dom[-6:-3, -6:-3] = True
     dom[-3:, -3:] = True  # meets the square above only at a corner
-    up, down = grid_links(dom)
+    down = grid_links(dom)[1]
     right = np.zeros(dom.shape, dtype=bool)
     right[:, :-1] = dom[:, :-1] & dom[:, 1:]
     wh = np.where(right[dom], rng.uniform(0.05, 2.0, int(dom.sum())), 0.0).astype(np.float32)
@@ -164,7 +163,7 @@ def test_ls_equals_the_direct_solve_within_the_solver_tolerance() -> None:
 
 
 def test_the_same_normals_give_the_same_depth_bit_for_bit() -> None:
-    # the AMG setup and the float32 preconditioner start from nothing random
+    # the multigrid setup and the float32 preconditioner start from nothing random
     n, mask = _two_pieces()
     for method in ("ls", "bini"):
         a, b = (integrate(n, mask, method=method) for _ in range(2))

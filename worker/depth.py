@@ -25,11 +25,12 @@ pixel's one-sided equations, forward and backward, with weights ``w+ = sigmoid(k
 surface is not pulled across the jump. An edge's two one-sided equations add up to one weighted equation,
 so both methods solve the same weighted graph Laplacian, and ``bini`` starts from ``ls`` (all weights 1/2).
 
-Solver: the normal equations are a weighted graph Laplacian on the domain's pixels (5 non-zeros a row),
-built straight in CSR form (float32 values, int32 indices) and solved by conjugate gradients in float64
-preconditioned with smoothed-aggregation algebraic multigrid (pyamg, float32) to a relative residual ``tol``;
-memory and time are linear in pixels. Each
-connected piece's free constant is fixed afterwards (mean 0, or the distance in perspective).
+Solver: the normal equations are a weighted graph Laplacian on the domain's pixels, applied matrix-free
+from one float32 weight per edge and solved by conjugate gradients preconditioned with a geometric
+aggregation multigrid of its own (:mod:`worker.depth_solver`) to a relative residual ``tol``; the slopes
+are computed from the normals where they are needed, not stored. Memory (about 85 bytes per pixel) and time
+are linear in pixels. Each connected piece's free constant is fixed afterwards (mean 0, or the distance in
+perspective).
 
 Slopes are clipped where the normal is nearly perpendicular to the view (``nz`` or ``den`` below
 ``min_nz``, about 85 deg): there the surface is a silhouette and the slope is unbounded.
@@ -51,11 +52,11 @@ from maxfs.worker.depth_solver import grid_links, solve
 #: What each method is, as recorded with the depth.
 DESCRIPTIONS = {
     DepthMethod.LS: "least squares on 4-neighbour differences, trapezoidal slopes; "
-    "CG with smoothed-aggregation AMG (pyamg)",
+    "CG with a geometric aggregation multigrid",
     DepthMethod.BINI: "bilateral normal integration (Cao et al., ECCV 2022): IRLS of one-sided differences "
-    "with sigmoid weights; CG with smoothed-aggregation AMG (pyamg)",
+    "with sigmoid weights; CG with a geometric aggregation multigrid",
 }
-DEFAULT_TOL = 1e-7  # relative residual of the normal equations (float64 CG stalls near 1e-8 at megapixels)
+DEFAULT_TOL = 1e-7  # relative residual of the normal equations
 DEFAULT_K = DEFAULT_DEPTH_K
 DEFAULT_BINI_TOL = 1e-4  # bini stops when its energy changes by less than this, relatively
 DEFAULT_BINI_ITERATIONS = 100

@@ -528,8 +528,11 @@ class Multigrid:
                 agg, crows, ccols, cnc = _coarse_aggregate(lev, rows, cols, theta)
             if cnc == 0 or cnc >= nc:
                 break
+            cindptr, cidx, cval = _galerkin(_coarse_from_coarse, (indptr, idx, val), agg, cnc)
+            if cindptr[-1] == 0:
+                break  # each aggregate is a whole piece: nothing to correct, so this level is the coarsest
             lev.agg = agg
-            indptr, idx, val = _galerkin(_coarse_from_coarse, (indptr, idx, val), agg, cnc)
+            indptr, idx, val = cindptr, cidx, cval
             rows, cols, nc = crows, ccols, cnc
         self.coarsest = _factor(self.levels[-1])
 
