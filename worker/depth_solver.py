@@ -17,11 +17,13 @@ pixel, or a whole piece that became one node) has no coarse correction. The coar
 nodes) is solved directly with one node of each connected piece held at 0 (the Laplacian is singular per
 piece; any solution of a consistent system is as good for a preconditioner).
 
-The V-cycle smooths with symmetric Gauss-Seidel (forward sweeps before the coarse correction, backward
-after), so the preconditioner is symmetric positive definite and CG applies. The coarse correction is scaled
-by ``OVERCORRECT``: a piecewise-constant prolongation makes the Galerkin coarse operator of a smooth error
-twice too stiff on a 2 x 2 aggregation, and scaling the correction back keeps CG's iteration count nearly
-flat with the image size (the remedy for plain aggregation known from Braess, 1995, and Notay's AGMG).
+The V-cycle smooths with Gauss-Seidel: red-black on the fine level (red then black before the coarse
+correction, black then red after; a colour's updates are independent), forward then backward on the coarse
+levels, so the preconditioner is symmetric positive semi-definite and CG applies. The coarse correction is
+scaled by ``OVERCORRECT`` (over-correction): with a piecewise-constant prolongation the Galerkin coarse
+operator is twice too stiff for a smooth error, on 2 x 2 aggregates as on the 1 x 2 of a one-pixel strand, and
+doubling the correction keeps CG's iterations nearly flat with the image size (10-11 from 0.25 to 16 M pixels
+on a solid object, against 20 and more without).
 
 Precision: the weights and the preconditioner's vectors are float32; CG's solution, residual, search direction
 and its product with the matrix are float64, as is every sum. The residual has to resolve modes that the
