@@ -258,13 +258,32 @@ def _ls_residual(n, dom, down, cam, z):  # pragma: no cover - numba
     return sq, top, m
 
 
-def _pieces(dom: NDArray[np.bool_]) -> tuple[int, NDArray[np.int32]]:
-    """Connected pieces of the domain under 4-neighbour edges (every edge has a weight > 0), and each
-    domain pixel's piece in raster order."""
-    import scipy.ndimage
-
-    lab, n = scipy.ndimage.label(dom, structure=[[0, 1, 0], [1, 1, 1], [0, 1, 0]])
-    return int(n), (lab[dom] - 1).astype(np.int32, copy=False)
+@njit(cache=True, nogil=True)
+def _pieces(wh, down, lab):  # pragma: no cover - numba
+    """Connected pieces of the domain (its 4-neighbour edges: ``wh[i] != 0`` to ``i + 1``, ``down``):
+    each pixel's piece into ``lab`` (numbered in raster order of their first pixel); returns how many."""
+    n = lab.size
+    for i in range(n):
+        lab[i] = i
+    for i in range(n):
+        for e in range(2):
+            j = (i + 1 if wh[i] != 0.0 else -1) if e == 0 else down[i]
+            if j < 0:
+                continue
+            a, b = i, j
+            while lab[a] != a:
+                a = lab[a]
+            while lab[b] != b:
+                b = lab[b]
+            lab[max(a, b)] = min(a, b)
+    count = 0
+    for i in range(n):  # a parent comes before its children, so it is numbered already
+        if lab[i] == i:
+            lab[i] = count
+            count += 1
+        else:
+            lab[i] = lab[lab[i]]
+    return count
 
 
 def integrate(
@@ -310,7 +329,9 @@ def integrate(
         raise InvalidInputError(f"bini's k must be a positive number, got {k!r}")
     n = np.asarray(normal)
     H, W = n.shape[:2]
-    dom = np.isfinite(n).all(axis=2)
+    dom = np.isfinite(n[..., 0])  # a channel at a time: no (H, W, 3) temporary
+    dom &= np.isfinite(n[..., 1])
+    dom &= np.isfinite(n[..., 2])
     if mask is not None:
         dom &= np.asarray(mask, dtype=bool)
     npx = int(dom.sum())
@@ -367,10 +388,11 @@ def integrate(
             if done:
                 break
         params["iterations"] = iterations
-    del wh, wv, b, up
+    del wv, b, up
     sq, top, m = _ls_residual(n, dom, down, par, z)
-    del down
-    pieces, lab = _pieces(dom)
+    lab = np.empty(npx, dtype=np.int32)
+    pieces = _pieces(wh, down, lab)
+    del wh, down
     counts = np.maximum(np.bincount(lab, minlength=pieces), 1)
     z -= (np.bincount(lab, weights=z, minlength=pieces) / counts)[lab]
     if camera is not None:
