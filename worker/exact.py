@@ -216,7 +216,7 @@ def _keep_largest(buf, size, n, x):  # pragma: no cover - numba
     return size
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True)
 def _interval(absL, invL, j, v, rad, lj, hj, d, hd):  # pragma: no cover - numba
     """Offsets ``s`` along axis ``d`` (within ``+-hd``) where slab ``j``, at ``L.c = v``
     with half-range ``rad`` over the box, can hold a point of the box."""
