@@ -84,9 +84,12 @@ _SIGMA_REL = 1e-12  # rounding slack of box-slab tests, relative to U (far below
 # bare ``0`` or ``-1`` as a literal, and while it infers a loop's types it compiles each callee once for
 # the literal and once more for int64. Those duplicates were 14 of 25 compiled functions and made the
 # first compile after an install 31 s instead of 19 s (tests/test_exact_kernel.py counts them).
+# Every kernel but the entry point allocates nothing (work arrays come from ``solve_exact``) and is
+# compiled with ``_nrt=False``: numba's reference counting otherwise increments and decrements each
+# array argument atomically on every call, a cost paid per node and per slab pass.
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, _nrt=False)
 def _count(L, lo, hi, idx, m, x, y, z):  # pragma: no cover - numba
     """Slabs (widened bounds ``lo``, ``hi``) holding the point, from fresh dot products."""
     c = 0
@@ -98,7 +101,7 @@ def _count(L, lo, hi, idx, m, x, y, z):  # pragma: no cover - numba
     return c
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, _nrt=False)
 def _lsq(L, inten, sel, k, out):  # pragma: no cover - numba
     """Least squares ``n`` over the selected images; False if ill-conditioned."""
     s00 = s01 = s02 = s11 = s12 = s22 = 0.0
@@ -133,7 +136,7 @@ def _lsq(L, inten, sel, k, out):  # pragma: no cover - numba
     return True
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, _nrt=False)
 def _claim(L, lo, hi, idx, m, x, y, z, best, bp):  # pragma: no cover - numba
     """Accept ``(x, y, z)`` as the incumbent if its fresh count beats ``best``."""
     cnt = _count(L, lo, hi, idx, m, x, y, z)
@@ -145,16 +148,18 @@ def _claim(L, lo, hi, idx, m, x, y, z, best, bp):  # pragma: no cover - numba
     return best
 
 
-@njit(cache=True, nogil=True)
-def _enum_leaf(L, a, b, lo, hi, tol, idx, m, row, p, c, h, f, best, bp):  # pragma: no cover - numba
+@njit(cache=True, nogil=True, _nrt=False)
+def _enum_leaf(L, a, b, lo, hi, tol, idx, m, row, p, c, h, f, best, bp, nrm, off):  # pragma: no cover - numba
     """Exact depth inside a box: try every vertex of its crossing planes and faces.
 
     ``row`` holds the ``p`` crossing slabs; a vertex whose count there (plus the
     ``f`` full slabs) beats ``best`` is recounted over all ``m`` before it is taken.
+    ``nrm`` (at least ``2 p + 6`` rows of 3) and ``off`` are work arrays.
     """
     npl = 2 * p + 6
-    nrm = np.zeros((npl, 3))
-    off = np.empty(npl)
+    for i in range(npl):
+        for d in range(3):
+            nrm[i, d] = 0.0
     for q in range(p):
         j = row[q]
         for d in range(3):
@@ -199,7 +204,7 @@ def _enum_leaf(L, a, b, lo, hi, tol, idx, m, row, p, c, h, f, best, bp):  # prag
     return best
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, _nrt=False)
 def _keep_largest(buf, size, n, x):  # pragma: no cover - numba
     """Insert ``x`` into ``buf[:size]`` (descending) keeping at most the ``n`` largest; new size."""
     if size < n:
@@ -216,7 +221,7 @@ def _keep_largest(buf, size, n, x):  # pragma: no cover - numba
     return size
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, _nrt=False)
 def _interval(absL, invL, j, v, rad, lj, hj, d, hd):  # pragma: no cover - numba
     """Offsets ``s`` along axis ``d`` (within ``+-hd``) where slab ``j``, at ``L.c = v``
     with half-range ``rad`` over the box, can hold a point of the box."""
@@ -230,7 +235,7 @@ def _interval(absL, invL, j, v, rad, lj, hj, d, hd):  # pragma: no cover - numba
     return max(min(t0, t1), -hd), min(max(t0, t1), hd)
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, _nrt=False)
 def _hull_pass(
     L, absL, invL, lo, hi, prow, pvrow, prrow, p, f, d, hd, pd, dc, dh, n, bs, bneg
 ):  # pragma: no cover - numba
@@ -268,7 +273,7 @@ def _hull_pass(
     return f, q2, cc, ns
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, _nrt=False)
 def _hull_pass_bins(
     L, absL, invL, lo, hi, prow, pvrow, prrow, p, f, d, hd, pd, dc, dh, hs, he
 ):  # pragma: no cover - numba
@@ -317,7 +322,7 @@ def _hull_pass_bins(
     return f, q2, cc, nb
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, _nrt=False)
 def _sweep_bins(hs, he, nb, g, hd):  # pragma: no cover - numba
     """:func:`_sweep` on binned intervals: a hull ``[smin, smax]`` that holds every offset
     where at most ``g`` intervals miss. In bin ``b`` at least the starts of higher bins and
@@ -344,7 +349,7 @@ def _sweep_bins(hs, he, nb, g, hd):  # pragma: no cover - numba
     return True, -hd + bmin * w, hd if bmax == nb - 1 else -hd + (bmax + 1) * w
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, _nrt=False)
 def _sweep(bs, bneg, g):  # pragma: no cover - numba
     """Hull ``[smin, smax]`` of the offsets ``s`` where at most ``g`` intervals miss.
 
@@ -400,7 +405,7 @@ _LP_SLACK = (
 _NONE = -1  # an LP row or constraint that is a face of the box, not of a slab
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, _nrt=False)
 def _lp_line(A2, b2, i, ulo, uhi, vlo, vhi, u0, v0, T):  # pragma: no cover - numba
     """The 1-D step of :func:`_lp_plane`: on the line ``A2[i] . y = b2[i]``, a point of the
     rows before ``i`` and the box. Returns (status, u, v, jlo, jhi) with status as
@@ -463,7 +468,7 @@ def _lp_line(A2, b2, i, ulo, uhi, vlo, vhi, u0, v0, T):  # pragma: no cover - nu
     return np.int64(1), yk0, t, none, none
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, _nrt=False)
 def _lp_plane(A2, b2, n2, ulo, uhi, vlo, vhi, u, v, T):  # pragma: no cover - numba
     """The 2-D step of :func:`_lp_box` (Seidel's incremental LP): a point of ``A2 y <= b2``
     in the box ``[ulo, uhi] x [vlo, vhi]``. Returns (status, u, v, i, jlo, jhi): where there
@@ -480,7 +485,7 @@ def _lp_plane(A2, b2, n2, ulo, uhi, vlo, vhi, u, v, T):  # pragma: no cover - nu
     return np.int64(1), u, v, none, none, none
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, _nrt=False)
 def _lp_box(L, lo, hi, row, pv, pr, p, skip, c, h, H, hb, hq, A2, b2, x, core):  # pragma: no cover - numba
     """Does the box ``c +- h`` hold a point inside every slab of ``row[:p]`` but those
     whose position ``q`` has ``skip[q]``?
@@ -577,7 +582,7 @@ def _lp_box(L, lo, hi, row, pv, pr, p, skip, c, h, H, hb, hq, A2, b2, x, core): 
     return np.int64(1)
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, _nrt=False)
 def _lp_search(L, lo, hi, idx, m, row, pv, pr, p, f, c, h, best, bp, lpw):  # pragma: no cover - numba
     """Decide a box whose crossing slabs ``row[:p]`` may miss at most ``g = f + p - best - 1``
     by LPs, without splitting it: the LP over every crossing slab, and where it has no
@@ -585,7 +590,17 @@ def _lp_search(L, lo, hi, idx, m, row, pv, pr, p, f, c, h, best, bp, lpw):  # pr
     to depth ``g`` (a point must miss one of each core). Returns (status, best): 0 no point
     beats ``best`` (prune), 1 a better incumbent was claimed, -1 undecided (an LP was).
     """
-    H, hb, hq, A2, b2, skip, x, cs, cores = lpw
+    H, hb, hq, A2, b2, skip, x, cs, cores = (
+        lpw[0],
+        lpw[1],
+        lpw[2],
+        lpw[3],
+        lpw[4],
+        lpw[5],
+        lpw[6],
+        lpw[7],
+        lpw[8],
+    )
     g = f + p - best - 1
     for q in range(p):
         skip[q] = False
@@ -623,7 +638,7 @@ def _lp_search(L, lo, hi, idx, m, row, pv, pr, p, f, c, h, best, bp, lpw):  # pr
     return (np.int64(-1) if undecided else np.int64(0)), best
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, _nrt=False)
 def _bnb(
     L,
     absL,
@@ -683,8 +698,7 @@ def _bnb(
     top = 1
     nodes = 0
     zero, one = np.int64(0), np.int64(1)  # not literals (see the note on np.int64 above)
-    c = np.empty(3)
-    h = np.empty(3)
+    nrm, off, c, h = lpw[9], lpw[10], lpw[11], lpw[12]
     st = np.int64(0)
     while top > 0:
         top -= 1
@@ -804,7 +818,7 @@ def _bnb(
                 if nb > best:
                     best = nb
                     continue
-            best = _enum_leaf(L, a, b, lo, hi, tol, idx, m, prow, p, c, h, f, best, bp)
+            best = _enum_leaf(L, a, b, lo, hi, tol, idx, m, prow, p, c, h, f, best, bp, nrm, off)
             continue
         ax = 0
         if h[1] > h[ax]:
@@ -813,7 +827,7 @@ def _bnb(
             ax = 2
         if h[ax] < hmin or top + 2 >= S:
             # the row may still miss the last move: a superset of the crossing slabs is exact here
-            best = _enum_leaf(L, a, b, lo, hi, tol, idx, m, prow, p, c, h, f, best, bp)
+            best = _enum_leaf(L, a, b, lo, hi, tol, idx, m, prow, p, c, h, f, best, bp, nrm, off)
             continue
         hh = 0.5 * h[ax]
         r1 = strow[top + 1]
@@ -886,14 +900,14 @@ def _bnb(
     return best, nodes, True
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, _nrt=False)
 def _try_point(L, lo, hi, idx, m, U, x, y, z, best, bp):  # pragma: no cover - numba
     if abs(x) > U or abs(y) > U or abs(z) > U or not (x == x and y == y and z == z):
         return best
     return _claim(L, lo, hi, idx, m, x, y, z, best, bp)
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, _nrt=False)
 def _project(L, a, b, idx, m, U, margin, n0, sweeps, lo, hi, best, bp):  # pragma: no cover - numba
     """Alternating projections onto every usable slab (shrunk by ``margin``), from ``n0``.
 
@@ -993,6 +1007,10 @@ def solve_exact(
         np.empty(3),
         np.zeros(_LP_GAP, np.int64),
         np.empty((_LP_GAP + 1, 4), np.int64),
+        np.empty((2 * k + 6, 3)),  # then the vertex enumeration's, and the box centre and half-widths
+        np.empty(2 * k + 6),
+        np.empty(3),
+        np.empty(3),
     )
     lo = np.zeros(k)
     hi = np.zeros(k)
