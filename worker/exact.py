@@ -984,13 +984,13 @@ def solve_exact(
                 invL[i, d] = 1.0 / L[i, d]
     a = np.zeros(k)
     b = np.zeros(k)
-    idx = np.empty(k, np.int32)
+    idx = np.empty(k, np.uint32)  # unsigned: indexing skips the negative-index wraparound
     stc = np.empty((_STACK, 3))
     sth = np.empty((_STACK, 3))
     stf = np.empty(_STACK, np.int64)
     stp = np.empty(_STACK, np.int64)
     strow = np.empty(_STACK, np.int64)
-    pool = np.empty((_STACK, k), np.int32)
+    pool = np.empty((_STACK, k), np.uint32)
     pv = np.empty((_STACK, k))
     pr = np.empty((_STACK, k))
     bs = np.empty(k + 1)
