@@ -323,6 +323,36 @@ def _hull_pass_bins(
 
 
 @njit(cache=True, nogil=True, _nrt=False)
+def _bin_intervals(absL, invL, lo, hi, prow, pvrow, prrow, p, d, hd, hs, he):  # pragma: no cover - numba
+    """:func:`_hull_pass_bins` for a row that holds exactly the box's crossing slabs (no move
+    pending: a box as pushed, or after a pass that did not shrink it): the intervals only.
+    Returns (slabs of the row holding the centre, nb)."""
+    nb = min(_BINS, max(8, 2 * p))
+    for i in range(nb):
+        hs[i] = 0
+        he[i] = 0
+    iw = nb / (2.0 * hd)
+    cc = 0
+    for q in range(p):
+        j = prow[q]
+        v = pvrow[q]
+        rad = prrow[q]
+        lj = lo[j]
+        hj = hi[j]
+        cc += (v >= lj) & (v <= hj)
+        ro = max(rad - absL[j, d] * hd, 0.0)
+        iv = invL[j, d]
+        t0 = (lj - v - ro) * iv
+        t1 = (hj - v + ro) * iv
+        wide = nb * (iv == 0.0)
+        u0 = (min(t0, t1) + hd) * iw - 1e-6 - wide
+        u1 = (max(t0, t1) + hd) * iw + 1e-6 + wide
+        hs[np.int64(min(max(u0, 0.0), nb - 1.0))] += 1
+        he[np.int64(min(max(u1, 0.0), nb - 1.0))] += 1
+    return cc, nb
+
+
+@njit(cache=True, nogil=True, _nrt=False)
 def _sweep_bins(hs, he, nb, g, hd):  # pragma: no cover - numba
     """:func:`_sweep` on binned intervals: a hull ``[smin, smax]`` that holds every offset
     where at most ``g`` intervals miss. In bin ``b`` at least the starts of higher bins and
@@ -688,13 +718,21 @@ def _bnb(
     for d in range(3):
         stc[0, d] = 0.0
         sth[0, d] = U
-    stf[0] = 0
-    stp[0] = m
+    # the root's row holds exactly its crossing slabs, as every pushed box's does
+    f0 = 0
+    p0 = 0
     for q in range(m):
         j = idx[q]
-        pool[0, q] = j
-        pv[0, q] = 0.0
-        pr[0, q] = U * (absL[j, 0] + absL[j, 1] + absL[j, 2]) + sig
+        rad = U * (absL[j, 0] + absL[j, 1] + absL[j, 2]) + sig
+        full = (-rad >= lo[j]) & (rad <= hi[j])
+        cross = (rad >= lo[j]) & (-rad <= hi[j]) & (not full)
+        f0 += full
+        pool[0, p0] = j
+        pv[0, p0] = 0.0
+        pr[0, p0] = rad
+        p0 += cross
+    stf[0] = f0
+    stp[0] = p0
     top = 1
     nodes = 0
     zero, one = np.int64(0), np.int64(1)  # not literals (see the note on np.int64 above)
@@ -727,7 +765,9 @@ def _bnb(
                 d = 2 if t == 0 else t - 1
                 # keep g + 1 = f + p - best ends: re-classification can only lower g
                 nbin = np.int64(0)
-                if p >= _BIN_P:  # many slabs: a histogram of the intervals instead of kept extremes
+                if p >= _BIN_P and dc == 0.0 and dh == 0.0:  # the row is the box's: intervals only
+                    cc, nbin = _bin_intervals(absL, invL, lo, hi, prow, pvrow, prrow, p, d, h[d], hs, he)
+                elif p >= _BIN_P:  # many slabs: a histogram of the intervals instead of kept extremes
                     f, p, cc, nbin = _hull_pass_bins(
                         L, absL, invL, lo, hi, prow, pvrow, prrow, p, f, d, h[d], pd, dc, dh, hs, he
                     )
