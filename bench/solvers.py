@@ -17,7 +17,10 @@ Prints markdown tables.
 shadows, glossy lobes, shot and read noise) for several k, the seven UW psm
 objects (12 images, a centre crop of the mask) and the three DiLiGenT crops
 (96 images, a centre crop), each as the raw stack a job gets. eps is the job's
-automatic rule (:func:`worker.solve.estimate_job_eps`). Times are CPU time of
+automatic rule (:func:`worker.solve.estimate_job_eps`) and the slabs are the paper
+model's; ``--model robust`` instead gives the kernel exactly what ``maxfs run`` with its
+defaults gives it (the robust model's slabs, shadows and excluded highlights, captured
+from :func:`worker.solve.solve` on the same stack). Times are CPU time of
 the solving thread for a whole batch in raster order (the service's path), the
 best of ``--reps`` runs; ``count == MILP`` compares the count on a sample of pixels with outliers
 (HiGHS, ``--milp-cap`` seconds each). ``--baseline FILE`` (an earlier ``worker/exact.py``,
@@ -37,18 +40,20 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from unittest import mock
 
 import numpy as np
 
 from maxfs.storage.inputs import load_folder
 from maxfs.storage.observations import ObservationModel
 from maxfs.storage.tiles import DEFAULT_TILE
+from maxfs.worker import solvers as solver_registry
 from maxfs.worker import synthetic
 from maxfs.worker.exact import exact_pixels
 from maxfs.worker.lstsq import refit
 from maxfs.worker.milp import MilpSolver
 from maxfs.worker.problem import make_thresholds, slabs, usable
-from maxfs.worker.solve import estimate_job_eps, solve_pixels
+from maxfs.worker.solve import estimate_job_eps, solve, solve_pixels
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 UW_OBJECTS = ("buddha", "cat", "chrome", "gray", "horse", "owl", "rock")
@@ -122,6 +127,8 @@ class Pixels:
     L: np.ndarray  # (k, 3)
     eps: float
     box_factor: float
+    lo: np.ndarray | None = None  # (P, k) slab bounds; None: the paper model's at eps
+    hi: np.ndarray | None = None
 
 
 def _job_pixels(name: str, raw: np.ndarray, L: np.ndarray, mask: np.ndarray, intensities=None) -> Pixels:
@@ -143,7 +150,23 @@ def realistic_pixels(k: int, size: int, seed: int = 0) -> Pixels:
     return _job_pixels(f"realistic {size}x{size}", sc.images.astype(np.uint16), sc.lights, sc.mask)
 
 
-def dataset_pixels(folder: Path, crop: int) -> Pixels:
+def robust_pixels(name: str, raw: np.ndarray, L: np.ndarray, mask: np.ndarray, intensities=None) -> Pixels:
+    """The kernel's arguments when :func:`worker.solve.solve` (``maxfs run``'s defaults: the
+    robust model, eps auto) solves the raw stack in one tile; eps is the estimated one."""
+    calls = []
+    kernel = solver_registry.exact_pixels
+
+    def record(S, lo, hi, valid, L_, box_factor, max_nodes, above=None):
+        calls.append((S.copy(), lo.copy(), hi.copy(), valid.copy(), box_factor))
+        return kernel(S, lo, hi, valid, L_, box_factor, max_nodes, above)
+
+    with mock.patch.object(solver_registry, "exact_pixels", record):
+        sol = solve(raw, L, mask, intensities=intensities, tile=max(raw.shape[1:3]))
+    S, lo, hi, valid, box_factor = calls[0]
+    return Pixels(f"{name} (robust)", S, valid, L, float(sol.eps), box_factor, lo, hi)
+
+
+def dataset_pixels(folder: Path, crop: int, model: str = "paper") -> Pixels:
     """A ``crop`` x ``crop`` window centred on the mask's centroid."""
     ds = load_folder(folder)
     mask = ds.mask if ds.mask is not None else np.ones((ds.height, ds.width), bool)
@@ -152,6 +175,8 @@ def dataset_pixels(folder: Path, crop: int) -> Pixels:
     x0 = int(np.clip(xs.mean() - crop / 2, 0, max(ds.width - crop, 0)))
     win = (slice(y0, y0 + crop), slice(x0, x0 + crop))
     raw = np.stack([ds.read(i)[win] for i in range(ds.k)])
+    if model == "robust":
+        return robust_pixels(f"{ds.name} {crop}x{crop}", raw, ds.lights, mask[win], ds.intensities)
     return _job_pixels(f"{ds.name} {crop}x{crop}", raw, ds.lights, mask[win], ds.intensities)
 
 
@@ -178,7 +203,7 @@ def kernel_row(
     """The exact kernel on a batch of pixels (best of ``reps``), its nodes, and a MILP check;
     with ``baseline`` (another ``exact_pixels``) that one too, run for run interleaved."""
     I, V, L = px.I, px.V, px.L
-    lo, hi = slabs(I, px.eps)
+    lo, hi = slabs(I, px.eps) if px.lo is None else (px.lo, px.hi)
     kernels = {"new": exact_pixels} | ({"base": baseline} if baseline else {})
     times: dict[str, list[float]] = {name: [] for name in kernels}
     out = {}
@@ -195,7 +220,9 @@ def kernel_row(
     pick = hard[np.linspace(0, hard.size - 1, min(milp_sample, hard.size)).astype(int)] if hard.size else hard
     milp = "-"
     if pick.size:
-        _, _, mc, mcert, _ = MilpSolver(L, milp_cap).solve_rows(I[pick], V[pick], px.eps, px.box_factor)
+        _, _, mc, mcert, _ = MilpSolver(L, milp_cap).solve_rows(
+            I[pick], V[pick], (lo[pick], hi[pick]), px.box_factor
+        )
         milp = f"{int((mc == counts[pick]).sum())}/{pick.size}"
         low = int((mc < counts[pick]).sum())
         if low:
@@ -262,8 +289,10 @@ def kernel_tables(args: argparse.Namespace) -> None:
         print_kernel_table(rows, "exact kernel, UW psm objects (12 images, 8-bit, auto eps)")
     if args.diligent_crop > 0 and (DATA / "diligent-crop8").is_dir():
         dil = DATA / "diligent-crop8"
-        rows = [run(dataset_pixels(dil / o, args.diligent_crop)) for o in DILIGENT_OBJECTS]
-        print_kernel_table(rows, "exact kernel, DiLiGenT crops (96 images, 8-bit, auto eps)")
+        rows = [run(dataset_pixels(dil / o, args.diligent_crop, args.model)) for o in DILIGENT_OBJECTS]
+        print_kernel_table(
+            rows, f"exact kernel, DiLiGenT crops (96 images, 8-bit, auto eps, {args.model} model)"
+        )
 
 
 def sphere_table(args: argparse.Namespace) -> None:
@@ -296,6 +325,12 @@ def main() -> None:
     ap.add_argument("--diligent-crop", type=int, default=64, help="kernel: DiLiGenT crop edge (0: skip)")
     ap.add_argument("--reps", type=int, default=3, help="kernel: interleaved timing runs (best taken)")
     ap.add_argument("--milp-sample", type=int, default=5, help="kernel: pixels checked against the MILP")
+    ap.add_argument(
+        "--model",
+        choices=["paper", "robust"],
+        default="paper",
+        help="kernel: the DiLiGenT crops' slabs (robust: as maxfs run's defaults give them)",
+    )
     ap.add_argument("--baseline", type=Path, help="kernel: an earlier worker/exact.py to time alongside")
     ap.add_argument("--quick", action="store_true", help="smaller runs of every table")
     args = ap.parse_args()
