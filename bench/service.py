@@ -333,7 +333,7 @@ def main() -> None:
     try:
         if "server" in only:
             print(
-                f"\nwarm server (submit + wait + fetch + delete) vs `maxfs run` on {args.folder}; "
+                f"\nwarm server (`maxfs submit --wait` + `maxfs fetch`) vs `maxfs run` on {args.folder}; "
                 f"wall s, min / median / max of {args.runs} interleaved runs\n"
             )
             print("| version | maxfs run s | server s | server / run |\n|---|---|---|---|", flush=True)
