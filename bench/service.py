@@ -269,12 +269,17 @@ def upload_rates(args: argparse.Namespace, tmp: Path) -> None:
 
     from bench.scale import write_stack
 
-    k = args.upload_k
-    images = np.load(write_stack(tmp / "up", k, 1000) / "images.npy")
+    if args.upload_folder:  # the folder's first images, as decoded (PNG bodies re-encoded)
+        ds = load_folder(args.upload_folder)
+        k = min(args.upload_k, ds.k)
+        images = np.stack([ds.read(i) for i in range(k)])
+    else:
+        k = args.upload_k
+        images = np.load(write_stack(tmp / "up", k, 1000) / "images.npy")
     pngs = [bytes(imagecodecs.png_encode(im)) for im in images]
-    meta = dict(
-        k=k, height=1000, width=1000, dtype="uint16", lights=synthetic.lights_uniform(k).tolist(), eps=5.0
-    )
+    h, w, channels = images.shape[1], images.shape[2], (images.shape[3] if images.ndim == 4 else 1)
+    lights = synthetic.lights_uniform(k).tolist()
+    meta = dict(k=k, height=h, width=w, channels=channels, dtype=str(images.dtype), lights=lights, eps=5.0)
     servers = {
         label: Serve(b, tmp / f"up-{label}" / "data", workers=1) for label, b in versions(args).items()
     }
@@ -325,6 +330,9 @@ def main() -> None:
     ap.add_argument("--workers", type=int, default=2, help="the server section's workers")
     ap.add_argument("--mp-k", type=int, default=16, help="images of the 1-megapixel Dask-path job")
     ap.add_argument("--upload-k", type=int, default=8, help="images per upload run")
+    ap.add_argument(
+        "--upload-folder", default="", help="upload this folder's images (default: 1000^2 uint16)"
+    )
     args = ap.parse_args()
     only = set(args.only.split(","))
     if "paths" in only:
@@ -350,8 +358,9 @@ def main() -> None:
             )
             dask_ratio(args, tmp)
         if "upload" in only:
+            what = args.upload_folder or "1000 x 1000 uint16"
             print(
-                f"\nHTTP upload of {args.upload_k} images of 1000 x 1000 uint16 (one user, one at a time); "
+                f"\nHTTP upload of {args.upload_k} images of {what} (one user, one at a time); "
                 f"MB/s of request body, min / median / max of {args.runs} interleaved runs\n"
             )
             print("| version | raw MB/s | PNG MB/s | raw / PNG bytes |\n|---|---|---|---|", flush=True)
