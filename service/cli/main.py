@@ -176,7 +176,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         from maxfs.storage.requests import job_params
 
     spec = JobSpec(ds.k, ds.height, ds.width, ds.channels, ds.dtype, ds.lights, ds.intensities).validate()
-    params = job_params(spec, _params(args), settings.task_memory)
+    params = job_params(spec, _params(args), settings.task_memory, ds.mask)
     print(f"{ds.name}: {ds.k} images of {ds.height} x {ds.width} ({ds.layout}, {ds.dtype})", file=sys.stderr)
     store, rec = run_folder(
         ds,
