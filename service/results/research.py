@@ -139,9 +139,10 @@ def write_depth(
     return res
 
 
-def finish_results(path: Path | str) -> str:
-    """What follows a finished run: the depth map, by the job's method. Returns a note for the user."""
-    res = write_depth(path)
+def finish_results(path: Path | str, normal: NDArray[np.floating] | None = None) -> str:
+    """What follows a finished run: the depth map, by the job's method (``normal`` as for
+    :func:`write_depth`). Returns a note for the user."""
+    res = write_depth(path, normal)
     if res is None:
         return "depth: none asked for"
     return (
