@@ -228,6 +228,32 @@ def print_costs(res: dict[str, list[Timed]], sides: list[str]) -> None:
             print(f"| {pre}`maxfs run` / {label} | {_spread(cpu, 'x')} | {_spread(wall, 'x')} |")
 
 
+def balance(out: Path, workers: tuple[int, ...] = (2, 4, 8)) -> str:
+    """The tile grid of a finished job and what it means for ``workers`` threads or workers: the
+    largest tile's share of the masked pixels, and the critical path when tiles start largest
+    first (as the runners do), in masked pixels as the work, over the ideal ``total / workers``."""
+    import zarr
+
+    g = zarr.open_group(out / "results.zarr", mode="r")
+    tile = int(g.attrs["params"]["tile"])
+    m = np.asarray(g["mask"][...])
+    ny, nx = -(-m.shape[0] // tile), -(-m.shape[1] // tile)
+    padded = np.zeros((ny * tile, nx * tile), bool)
+    padded[: m.shape[0], : m.shape[1]] = m
+    work = np.sort(padded.reshape(ny, tile, nx, tile).sum(axis=(1, 3)).ravel())[::-1]
+    work = work[work > 0]
+    paths = []
+    for w in workers:
+        free = np.zeros(w)
+        for x in work:  # each tile goes to the worker that frees up first
+            free[np.argmin(free)] += x
+        paths.append(f"{w}: {free.max() / (work.sum() / w):.2f}x")
+    return (
+        f"tile {tile}: {len(work)} of {ny * nx} tiles hold masked pixels, the largest "
+        f"{work[0] / work.sum():.1%} of them; critical path / ideal with N workers: {', '.join(paths)}"
+    )
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--runs", type=int, default=3)
@@ -259,6 +285,9 @@ def main() -> None:
         base = importable(args.baseline.resolve(), Path(tmp) / "baseline") if args.baseline else None
         trees = {"before": base, "after": None} if args.baseline else {"this": None}
         res = rounds(folder, Path(tmp), args.runs, trees, args.workers)
+        print()
+        for side in trees:
+            print(f"- {side}: {balance(Path(tmp) / f'{side}-run0')}")
     fresh = {s: res[f"{s} run"] for s in sides}
     rerun = {s: res[f"{s} re-run"] for s in sides}
     names = list(dict.fromkeys(n for s in sides for n in fresh[s][0].phases if n != "total"))
