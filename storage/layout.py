@@ -47,7 +47,8 @@ A tile task writes whole chunks of the outputs and its pixel counts, then ``done
 params.token()`` last. A tile counts as finished only if its marker equals the
 token of the *current* parameters, so a job re-run with other parameters never
 reuses stale tiles. A tile without masked pixels needs no marker: its outputs are fill values
-whatever the parameters, so it counts as done once the job has parameters (:meth:`JobStore.done_grid`). The store is created once, by the service or CLI, with mode
+whatever the parameters, so it counts as done once the job has parameters
+(:meth:`JobStore.done_grid`). The store is created once, by the service or CLI, with mode
 ``w-``; everything after opens it ``r+``.
 """
 

@@ -67,6 +67,9 @@ MIN_TILES = 16
 #: path, and 8 keeps 4 workers busy to the end (an object in one corner of the frame otherwise
 #: sits in one or two tiles whatever the worker count).
 MASKED_SHARE = 8
+#: ... but not so small that the frame has more tiles than this (the server's default
+#: ``MAXFS_MAX_TILES``): each tile is a chunk of every output, read by the previews and the depth.
+MAX_AUTO_TILES = 4096
 
 
 def tile_bytes_per_pixel(k: int, channels: int | None, itemsize: int) -> int:
@@ -120,15 +123,19 @@ def balanced_edge(mask: NDArray[np.bool_], largest: int) -> int:
     """The largest tile edge, a multiple of :data:`TILE_STEP` in [:data:`MIN_TILE`, ``largest``],
     whose grid holds at most 1 / :data:`MASKED_SHARE` of the masked pixels in any tile; the
     smallest edge when none does (an object under about ``MASKED_SHARE * MIN_TILE**2`` pixels,
-    cheap to solve anyway). A mask that selects nothing keeps ``largest``."""
+    cheap to solve anyway), where the smallest gives the frame at most :data:`MAX_AUTO_TILES`
+    tiles. A mask that selects nothing keeps ``largest``."""
     import numpy as np
 
     total = int(np.count_nonzero(mask))
     if total == 0:
         return largest
+    smallest = MIN_TILE
+    while smallest < largest and np.prod(grid_shape(*np.shape(mask), smallest)) > MAX_AUTO_TILES:
+        smallest += TILE_STEP
     edge = largest
-    while edge > MIN_TILE and masked_per_tile(mask, edge).max() * MASKED_SHARE > total:
-        edge = max(MIN_TILE, (edge - 1) // TILE_STEP * TILE_STEP)
+    while edge > smallest and masked_per_tile(mask, edge).max() * MASKED_SHARE > total:
+        edge = max(smallest, (edge - 1) // TILE_STEP * TILE_STEP)
     return edge
 
 

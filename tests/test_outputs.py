@@ -133,3 +133,13 @@ def test_auto_tiles_put_at_most_an_eighth_of_the_masked_pixels_in_one_tile() -> 
     tiny = np.zeros((512, 612), bool)
     tiny[:10, :10] = True
     assert balanced_edge(tiny, frame) == MIN_TILE
+
+
+def test_balanced_tiles_keep_a_large_frame_under_the_tile_limit() -> None:
+    from maxfs.storage.tiles import MAX_AUTO_TILES, balanced_edge, grid_shape
+
+    frame = np.zeros((3000, 4000), bool)
+    frame[1400:1500, 1900:2000] = True  # a small object in a 12-megapixel frame
+    edge = balanced_edge(frame, 512)
+    ny, nx = grid_shape(3000, 4000, edge)
+    assert ny * nx <= MAX_AUTO_TILES < np.prod(grid_shape(3000, 4000, edge - 16))
