@@ -95,8 +95,8 @@ def lights_digest(spec: JobSpec) -> str:
 class ProgressCounts:
     """What the finished tiles hold (from the small per-tile arrays, never the outputs)."""
 
-    tiles_done: int
-    tiles_total: int
+    tiles_done: int  # finished tiles among those of tiles_total
+    tiles_total: int  # tiles that hold masked pixels: the tiles with work (every tile without a mask)
     pixels_done: int  # masked pixels in finished tiles
     pixels_total: int  # masked pixels of the job
     solved: int  # masked pixels in finished tiles that got a normal
@@ -672,16 +672,16 @@ class JobStore:
 
     def progress(self) -> ProgressCounts:
         """Counts over the finished tiles, from the done grid and per-tile stats only."""
-        done = self.done_grid()
         counts = self.masked_per_tile()
+        done = self.done_grid() & (counts > 0)
         # the stats of finished tiles with masked pixels (the others' are zeros): a chunk each
-        ys, xs = np.nonzero(done & (counts > 0))
+        ys, xs = np.nonzero(done)
         cols = np.arange(3)
         flat = self._array("tile_stats").vindex[np.repeat(ys, 3), np.repeat(xs, 3), np.tile(cols, ys.size)]
         stats = np.asarray(flat, dtype=np.int64).reshape(-1, 3)
         return ProgressCounts(
             tiles_done=int(done.sum()),
-            tiles_total=int(done.size),
+            tiles_total=int(np.count_nonzero(counts)),
             pixels_done=int(stats[:, 0].sum()),
             pixels_total=int(counts.sum()),
             solved=int(stats[:, 1].sum()),
