@@ -696,9 +696,29 @@ class JobStore:
         return sorted(todo, key=lambda t: (-int(counts[t.ty, t.tx]), t.index))
 
     def read_output(self, name: str) -> NDArray[Any]:
+        """Output ``name`` whole. A tile output is read only over the tiles that hold masked pixels
+        (their bounding box): the others hold its fill value, and each of their chunks would cost
+        a look-up (most of the frame, for an object in balanced small tiles)."""
         if name not in OUTPUTS_BY_NAME or name not in self.group:
             raise NotFoundError(f"no output array {name!r}; available: {', '.join(self.output_names())}")
-        return np.asarray(self.group[name][...])
+        a = self.group[name]
+        o = OUTPUTS_BY_NAME[name]
+        if o.made != "tile":
+            return np.asarray(a[...])
+        ty, tx = np.nonzero(self.masked_per_tile())
+        if ty.size == 0:
+            return np.asarray(a[...])
+        T, (H, W) = self.params.tile, (self.spec.height, self.spec.width)
+        box = {
+            "y": slice(int(ty.min()) * T, min((int(ty.max()) + 1) * T, H)),
+            "x": slice(int(tx.min()) * T, min((int(tx.max()) + 1) * T, W)),
+        }
+        region = tuple(box.get(d, slice(0, n)) for d, n in zip(o.dims, a.shape, strict=True))
+        if all(r == slice(0, n) for r, n in zip(region, a.shape, strict=True)):
+            return np.asarray(a[...])
+        out = np.full(a.shape, a.fill_value, dtype=a.dtype)
+        out[region] = a[region]
+        return out
 
     def output_names(self) -> list[str]:
         return [n for n in OUTPUT_NAMES if n in self.group]

@@ -100,6 +100,11 @@ def test_tiles_without_masked_pixels_are_done_without_a_marker_once_the_job_has_
     assert store.done_grid().all() and store.tile_done(t)
     p = store.progress()
     assert (p.tiles_done, p.pixels_done, p.solved, p.certified) == (1, 64, 60, 50)
+    for o in TILE_OUTPUTS:  # read over the occupied tiles only: the same as reading every chunk
+        if o.exists(None):
+            got, every = store.read_output(o.name), np.asarray(store.group[o.name][...])
+            np.testing.assert_array_equal(got, every, err_msg=o.name)
+            assert got.dtype == every.dtype
 
 
 def test_a_new_mask_is_counted_again_by_the_same_store_object(tmp_path: Path) -> None:
