@@ -63,8 +63,8 @@ def evaluate_store(
         "error_map": str(map_path),
         "max_deg": max_deg,
     }
-    done = store.done_grid()
-    doc["tiles_done"], doc["tiles_total"] = int(done.sum()), int(done.size)
+    counts = store.progress()  # tiles with masked pixels, as the job's record counts them
+    doc["tiles_done"], doc["tiles_total"] = counts.tiles_done, counts.tiles_total
     json_path.write_text(json.dumps(doc, indent=1) + "\n")
     return ev, map_path, json_path
 
