@@ -313,7 +313,7 @@ SOLVE_OPTIONS: tuple[Option, ...] = (
     Option(
         "tile",
         "int|auto",
-        "tile edge in pixels (8-4096), or auto: from k, the task memory and the mask",
+        "tile edge in pixels (8-4096), or auto: from k, the task memory and (maxfs run) the mask",
         "auto",
     ),
     Option("shadow", "float", "intensities <= this are shadows (default: the model's, eps or eps/3)"),
