@@ -20,7 +20,10 @@ objects (12 images, a centre crop of the mask) and the three DiLiGenT crops
 automatic rule (:func:`worker.solve.estimate_job_eps`). Times are CPU time of
 the solving thread for a whole batch in raster order (the service's path), the
 best of ``--reps`` runs; ``count == MILP`` compares the count on a sample of pixels with outliers
-(HiGHS, ``--milp-cap`` seconds each).
+(HiGHS, ``--milp-cap`` seconds each). ``--baseline FILE`` (an earlier ``worker/exact.py``,
+e.g. ``git show main:worker/exact.py > /tmp/exact_main.py``) times that kernel on the same
+pixels, its runs interleaved with the current one's, and adds its ms/px (best and median), nodes,
+the speed-up and whether every count is the same.
 
 Run: ``python -m bench.solvers`` (``--quick`` for a smaller run).
 """
@@ -28,7 +31,10 @@ Run: ``python -m bench.solvers`` (``--quick`` for a smaller run).
 from __future__ import annotations
 
 import argparse
+import importlib
+import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -155,16 +161,34 @@ def _cpu_ms(fn) -> tuple[float, object]:
     return (time.thread_time() - t) * 1e3, out
 
 
-def kernel_row(px: Pixels, reps: int, milp_sample: int, milp_cap: float) -> dict:
-    """The exact kernel on a batch of pixels (best of ``reps``), its nodes, and a MILP check."""
+def load_baseline(path: Path) -> Callable:
+    """``exact_pixels`` of an earlier copy of ``worker/exact.py``, imported by its file name
+    from its folder (numba's cache beside it can then load it again)."""
+    if not path.is_file() or path.suffix != ".py":
+        raise SystemExit(
+            f"--baseline {path}: no such Python file (e.g. git show main:worker/exact.py > {path})"
+        )
+    sys.path.insert(0, str(path.resolve().parent))
+    return importlib.import_module(path.stem).exact_pixels
+
+
+def kernel_row(
+    px: Pixels, reps: int, milp_sample: int, milp_cap: float, baseline: Callable | None = None
+) -> dict:
+    """The exact kernel on a batch of pixels (best of ``reps``), its nodes, and a MILP check;
+    with ``baseline`` (another ``exact_pixels``) that one too, run for run interleaved."""
     I, V, L = px.I, px.V, px.L
     lo, hi = slabs(I, px.eps)
-    run = lambda: exact_pixels(I, lo, hi, V, L, px.box_factor, 10**8)  # noqa: E731
-    exact_pixels(I[:2], lo[:2], hi[:2], V[:2], L, px.box_factor, 10**8)  # JIT load
-    times = []
+    kernels = {"new": exact_pixels} | ({"base": baseline} if baseline else {})
+    times: dict[str, list[float]] = {name: [] for name in kernels}
+    out = {}
+    for fn in kernels.values():
+        fn(I[:2], lo[:2], hi[:2], V[:2], L, px.box_factor, 10**8)  # JIT load
     for _ in range(reps):
-        t, res = _cpu_ms(run)
-        times.append(t)
+        for name, fn in kernels.items():
+            t, out[name] = _cpu_ms(lambda fn=fn: fn(I, lo, hi, V, L, px.box_factor, 10**8))
+            times[name].append(t)
+    res = out["new"]
     P = len(I)
     counts, nodes = res[2], res[3]
     hard = np.flatnonzero(counts < V.sum(axis=1))
@@ -176,34 +200,60 @@ def kernel_row(px: Pixels, reps: int, milp_sample: int, milp_cap: float) -> dict
         low = int((mc < counts[pick]).sum())
         if low:
             milp += f" (MILP lower on {low}{', capped' if not mcert.all() else ''})"
-    return {
+    row = {
         "scene": px.name,
         "k": L.shape[0],
         "pixels": P,
         "eps": px.eps,
-        "ms": min(times) / P,
+        "ms": min(times["new"]) / P,
+        "ms_med": float(np.median(times["new"])) / P,
         "nodes": float(nodes.mean()),
         "p99": float(np.percentile(nodes, 99)),
         "cert": bool(res[4].all()),
         "milp": milp,
     }
+    if baseline:
+        b = out["base"]
+        row |= {
+            "base_ms": min(times["base"]) / P,
+            "base_ms_med": float(np.median(times["base"])) / P,
+            "base_nodes": float(b[3].mean()),
+            "base_p99": float(np.percentile(b[3], 99)),
+            "same": bool((b[2] == counts).all()),
+        }
+    return row
 
 
 def print_kernel_table(rows: list[dict], title: str) -> None:
     print(f"\n{title}\n")
-    print("| scene | k | pixels | eps | ms/px | nodes/px | p99 nodes | count == MILP |")
-    print("|---|---|---|---|---|---|---|---|")
+    if rows and "base_ms" in rows[0]:
+        print(
+            "| scene | k | pixels | eps | base ms/px (best / median) | ms/px (best / median) | speed-up "
+            "| base nodes/px | nodes/px | base p99 nodes | p99 nodes | counts == base | count == MILP |"
+        )
+        print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    else:
+        print("| scene | k | pixels | eps | ms/px | nodes/px | p99 nodes | count == MILP |")
+        print("|---|---|---|---|---|---|---|---|")
     for r in rows:
         cert = "" if r["cert"] else " (budget hit)"
-        print(
-            f"| {r['scene']} | {r['k']} | {r['pixels']} | {r['eps']:.3g} | {r['ms']:.4f} | {r['nodes']:.0f} "
-            f"| {r['p99']:.0f} | {r['milp']}{cert} |"
-        )
+        head = f"| {r['scene']} | {r['k']} | {r['pixels']} | {r['eps']:.3g} "
+        if "base_ms" in r:
+            print(
+                head + f"| {r['base_ms']:.4f} / {r['base_ms_med']:.4f} | {r['ms']:.4f} / {r['ms_med']:.4f} "
+                f"| {r['base_ms'] / r['ms']:.2f}x | {r['base_nodes']:.1f} | {r['nodes']:.1f} "
+                f"| {r['base_p99']:.0f} | {r['p99']:.0f} | {'yes' if r['same'] else 'NO'} "
+                f"| {r['milp']}{cert} |"
+            )
+        else:
+            print(head + f"| {r['ms']:.4f} | {r['nodes']:.0f} | {r['p99']:.0f} | {r['milp']}{cert} |")
 
 
 def kernel_tables(args: argparse.Namespace) -> None:
+    baseline = load_baseline(args.baseline) if args.baseline else None
+
     def run(px: Pixels) -> dict:
-        return kernel_row(px, args.reps, args.milp_sample, args.milp_cap)
+        return kernel_row(px, args.reps, args.milp_sample, args.milp_cap, baseline)
 
     rows = [run(realistic_pixels(k, args.real_size)) for k in args.real_ks]
     print_kernel_table(rows, "exact kernel, realistic scene (16-bit, auto eps)")
@@ -246,6 +296,7 @@ def main() -> None:
     ap.add_argument("--diligent-crop", type=int, default=64, help="kernel: DiLiGenT crop edge (0: skip)")
     ap.add_argument("--reps", type=int, default=3, help="kernel: interleaved timing runs (best taken)")
     ap.add_argument("--milp-sample", type=int, default=5, help="kernel: pixels checked against the MILP")
+    ap.add_argument("--baseline", type=Path, help="kernel: an earlier worker/exact.py to time alongside")
     ap.add_argument("--quick", action="store_true", help="smaller runs of every table")
     args = ap.parse_args()
     if args.quick:

@@ -239,7 +239,7 @@ def _run(
 
     settings = Settings()
     spec = JobSpec(ds.k, ds.height, ds.width, ds.channels, ds.dtype, ds.lights, ds.intensities).validate()
-    params = job_params(spec, options, settings.task_memory)
+    params = job_params(spec, options, settings.task_memory, ds.mask)
     temp = output is None
     out = Path(tempfile.mkdtemp(prefix="maxfs-")) / "result" if temp else Path(output)  # type: ignore[arg-type]
     try:

@@ -9,7 +9,17 @@ import numpy as np
 import pytest
 
 from maxfs.worker import synthetic
-from maxfs.worker.exact import _hull_pass, _sweep, above_index, exact_pixels
+from maxfs.worker.exact import (
+    _LP_SLACK,
+    _NONE,
+    _hull_pass,
+    _hull_pass_bins,
+    _lp_box,
+    _sweep,
+    _sweep_bins,
+    above_index,
+    exact_pixels,
+)
 from maxfs.worker.milp import MilpSolver
 from maxfs.worker.problem import REL_TOL, make_thresholds, slabs, usable
 
@@ -143,6 +153,72 @@ def test_axis_hull_is_the_hull_of_the_offsets_where_few_slabs_miss() -> None:
         assert ok == (feasible.size > 0), f"trial {trial}"
         if ok:
             assert (smin, smax) == (feasible.min(), feasible.max()), f"trial {trial}"
+        # binned: never prunes what the exact hull keeps, and its hull holds the exact one
+        hs, he = np.zeros(64, np.int64), np.zeros(64, np.int64)
+        f3, p3, _, nb = _hull_pass_bins(*args[:-1], hs, he)
+        assert (f3, p3) == (0, p) and hs[:nb].sum() == he[:nb].sum() == p
+        okb, bmin, bmax = _sweep_bins(hs, he, nb, g, h[d])
+        assert okb or not ok, f"trial {trial}"
+        if ok:
+            assert bmin <= smin and smax <= bmax, f"trial {trial}"
+
+
+# --- boxes decided by LPs ----------------------------------------------------------
+
+
+def _box_lp_feasible(L, lo, hi, c, h) -> bool:
+    """HiGHS (scipy's linprog): a point of the box ``c +- h`` inside every slab."""
+    from scipy.optimize import linprog
+
+    res = linprog(
+        np.zeros(3),
+        A_ub=np.vstack([L, -L]),
+        b_ub=np.concatenate([hi, -lo]),
+        bounds=list(zip(c - h, c + h, strict=True)),
+        method="highs",
+    )
+    return res.status == 0
+
+
+def test_box_lp_finds_a_point_or_a_core_of_at_most_four_slabs_without_one() -> None:
+    """The LP that decides a box near pruning, against HiGHS: "a point" is a point of every
+    slab and the box; "none" comes with at most four slabs that with the box hold no point
+    (what the kernel branches on), and the full set holds none either."""
+    rng = np.random.default_rng(7)
+    seen = {0: 0, 1: 0}
+    for trial in range(300):
+        p = int(rng.integers(4, 30))
+        L = rng.normal(size=(p, 3))
+        L /= np.linalg.norm(L, axis=1, keepdims=True)
+        c = rng.normal(size=3) * 3
+        h = rng.uniform(0.2, 2.0, 3)
+        x0 = c + rng.uniform(-1, 1, 3) * h  # slabs around a point of the box, some shifted off it
+        w = rng.uniform(0.05, 0.6, p)
+        mid = L @ x0 + rng.normal(size=p) * (rng.random(p) < 0.06) * 1.5
+        lo, hi = mid - w, mid + w
+        v = L @ c
+        rad = np.abs(L) @ h
+        row = np.arange(p, dtype=np.int32)
+        skip = np.zeros(p, bool)
+        skip[rng.random(p) < 0.1] = True
+        H, hb, hq = np.empty((2 * p, 3)), np.empty(2 * p), np.empty(2 * p, np.int64)
+        A2, b2, x, core = np.empty((2 * p + 2, 2)), np.empty(2 * p + 2), np.empty(3), np.empty(4, np.int64)
+        st = _lp_box(L, lo, hi, row, v, rad, p, skip, c, h, H, hb, hq, A2, b2, x, core)
+        keep = ~skip
+        truth = _box_lp_feasible(L[keep], lo[keep], hi[keep], c, h)
+        assert st in (0, 1), f"trial {trial}: undecided"
+        seen[int(st)] += 1
+        if st == 1:
+            sl = 2 * _LP_SLACK * (np.abs(c) + h).max()
+            assert (np.abs(x - c) <= h + sl).all()
+            t = L[keep] @ x
+            assert ((t >= lo[keep] - sl) & (t <= hi[keep] + sl)).all(), f"trial {trial}"
+        else:
+            assert not truth, f"trial {trial}: no point claimed where HiGHS finds one"
+            q = core[core != _NONE]
+            assert 1 <= q.size <= 4 and not skip[q].any()
+            assert not _box_lp_feasible(L[q], lo[q], hi[q], c, h), f"trial {trial}: core {q} holds a point"
+    assert min(seen.values()) > 40  # both answers were exercised
 
 
 # --- optimal counts on the realistic scene -----------------------------------------
@@ -212,6 +288,67 @@ def test_exact_matches_vertex_enumeration_on_the_hardest_pixels(k: int, size: in
         )
         assert cnt[p] == ref, f"pixel {p}: exact {cnt[p]}, vertex enumeration {ref}"
         assert cnt[p] < v.sum()
+
+
+# --- the hardest real pixels ------------------------------------------------------
+
+
+def _real_pixels(folder, crop: int, eps: float):
+    """A ``crop`` x ``crop`` window at the mask's centroid, as the kernel sees it (the
+    paper's slabs at a fixed eps near the automatic rule's value for the data)."""
+    from maxfs.storage.inputs import load_folder
+    from maxfs.storage.observations import ObservationModel
+
+    ds = load_folder(folder)
+    mask = ds.mask if ds.mask is not None else np.ones((ds.height, ds.width), bool)
+    ys, xs = np.nonzero(mask)
+    y0 = int(np.clip(ys.mean() - crop / 2, 0, ds.height - crop))
+    x0 = int(np.clip(xs.mean() - crop / 2, 0, ds.width - crop))
+    win = (slice(y0, y0 + crop), slice(x0, x0 + crop))
+    raw = np.stack([ds.read(i)[win] for i in range(ds.k)])
+    obs = ObservationModel.for_input(raw.dtype, ds.k, raw.shape[3] if raw.ndim == 4 else None, ds.intensities)
+    grey, _, saturated = obs.prepare(raw)
+    th = make_thresholds(ds.k, eps)
+    V = usable(grey.T, th).T & ~saturated & mask[win].ravel()[:, None]
+    rows = np.flatnonzero(V.sum(axis=1) >= 3)
+    lo, hi = slabs(grey[rows], eps)
+    return ds.lights, grey[rows], V[rows], lo, hi
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(
+    ("dataset", "name", "crop", "eps", "n"),
+    [
+        ("diligent", "cowPNG", 24, 10.6, 4),
+        ("diligent", "catPNG", 24, 2.17, 4),
+        ("uw_psm", "chrome", 48, 8.94, 6),
+    ],
+)
+def test_the_pixels_with_the_most_nodes_match_the_milp(request, dataset, name, crop, eps, n) -> None:
+    """Real pixels where the search is longest (the tail of nodes per pixel, where the LP
+    decisions and binned 1-D tests act most): each count equals the MILP optimum."""
+    L, I, V, lo, hi = _real_pixels(request.getfixturevalue(dataset) / name, crop, eps)
+    pt, inl, cnt, nodes, cert = exact_pixels(I, lo, hi, V, L, BOX, 10**7)
+    assert cert.all()
+    np.testing.assert_array_equal(inl, _recount(L, lo, hi, V, pt))
+    pick = np.argsort(-nodes, kind="stable")[:n]
+    assert nodes[pick].min() >= 20 and (cnt[pick] < V[pick].sum(axis=1)).all()
+    _, _, mcnt, mcert, _ = MilpSolver(L, time_limit=60).solve_rows(I[pick], V[pick], eps, BOX)
+    assert mcert.all()
+    np.testing.assert_array_equal(cnt[pick], mcnt)
+
+
+def test_the_realistic_pixels_with_the_most_nodes_match_the_milp() -> None:
+    """The fast tier's version: the longest searches of a small realistic scene (k = 48)."""
+    L, I, V, lo, hi, eps = _realistic(48, 10, seed=4)
+    pt, inl, cnt, nodes, cert = exact_pixels(I, lo, hi, V, L, BOX, 10**7)
+    assert cert.all()
+    np.testing.assert_array_equal(inl, _recount(L, lo, hi, V, pt))
+    pick = np.argsort(-nodes, kind="stable")[:3]
+    assert nodes[pick].min() >= 20
+    _, _, mcnt, mcert, _ = MilpSolver(L, time_limit=60).solve_rows(I[pick], V[pick], eps, BOX)
+    assert mcert.all()
+    np.testing.assert_array_equal(cnt[pick], mcnt)
 
 
 # --- seeds change the work, never the count ------------------------------------------

@@ -25,11 +25,12 @@ pixel's one-sided equations, forward and backward, with weights ``w+ = sigmoid(k
 surface is not pulled across the jump. An edge's two one-sided equations add up to one weighted equation,
 so both methods solve the same weighted graph Laplacian, and ``bini`` starts from ``ls`` (all weights 1/2).
 
-Solver: the normal equations are a weighted graph Laplacian on the domain's pixels (5 non-zeros a row),
-built straight in CSR form (float32 values, int32 indices) and solved by conjugate gradients in float64
-preconditioned with smoothed-aggregation algebraic multigrid (pyamg, float32) to a relative residual ``tol``;
-memory and time are linear in pixels. Each
-connected piece's free constant is fixed afterwards (mean 0, or the distance in perspective).
+Solver: the normal equations are a weighted graph Laplacian on the domain's pixels, applied matrix-free
+from one float32 weight per edge and solved by conjugate gradients preconditioned with a geometric
+aggregation multigrid of its own (:mod:`worker.depth_solver`) to a relative residual ``tol``; the slopes
+are computed from the normals where they are needed, not stored. Memory (about 85 bytes per pixel) and time
+are linear in pixels. Each connected piece's free constant is fixed afterwards (mean 0, or the distance in
+perspective).
 
 Slopes are clipped where the normal is nearly perpendicular to the view (``nz`` or ``den`` below
 ``min_nz``, about 85 deg): there the surface is a silhouette and the slope is unbounded.
@@ -37,24 +38,25 @@ Slopes are clipped where the normal is nearly perpendicular to the view (``nz`` 
 
 from __future__ import annotations
 
-import itertools
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from numba import njit
 from numpy.typing import NDArray
 
 from maxfs.storage.errors import InvalidInputError
 from maxfs.storage.options import DEFAULT_DEPTH_K, DepthMethod
+from maxfs.worker.depth_solver import grid_links, solve
 
 #: What each method is, as recorded with the depth.
 DESCRIPTIONS = {
     DepthMethod.LS: "least squares on 4-neighbour differences, trapezoidal slopes; "
-    "CG with smoothed-aggregation AMG (pyamg)",
+    "CG with a geometric aggregation multigrid",
     DepthMethod.BINI: "bilateral normal integration (Cao et al., ECCV 2022): IRLS of one-sided differences "
-    "with sigmoid weights; CG with smoothed-aggregation AMG (pyamg)",
+    "with sigmoid weights; CG with a geometric aggregation multigrid",
 }
-DEFAULT_TOL = 1e-7  # relative residual of the normal equations (float64 CG stalls near 1e-8 at megapixels)
+DEFAULT_TOL = 1e-7  # relative residual of the normal equations
 DEFAULT_K = DEFAULT_DEPTH_K
 DEFAULT_BINI_TOL = 1e-4  # bini stops when its energy changes by less than this, relatively
 DEFAULT_BINI_ITERATIONS = 100
@@ -64,9 +66,6 @@ MIN_NZ = 0.087
 _MIN_WEIGHT = 1e-5
 #: bini's solves stop here at the latest: its weights change more than this between iterations anyway.
 _BINI_CG_TOL = 1e-6
-#: Strength threshold of the AMG's aggregation: edges bini has all but cut are not "strong", so
-#: aggregates stay on one side of a jump.
-_THETA = 0.1
 
 
 @dataclass(frozen=True)
@@ -144,235 +143,147 @@ def slopes(normal: NDArray[np.floating], min_nz: float = MIN_NZ) -> tuple[NDArra
     return -n[..., 0] / nz, n[..., 1] / nz
 
 
-def _structure(dom: NDArray[np.bool_]) -> tuple[NDArray[np.int32], NDArray[np.int32]]:
-    """The 4-neighbour edges of the domain (pixels numbered in raster order): the first pixel of each
-    horizontal edge (the second is the next index) and the two ends of each vertical edge."""
+@njit(cache=True, nogil=True, inline="always")
+def _pixel(n, r, c, cam):  # pragma: no cover - numba
+    """``(pc, pr, sc, sr)`` of pixel ``(r, c)``: the unknown's slopes along columns and rows, and the
+    scales that turn a difference of the unknown into pixel-like units. ``cam`` is ``(perspective, fx,
+    fy, cx, cy, min_nz)``."""
+    nx, ny, nz = float(n[r, c, 0]), float(n[r, c, 1]), float(n[r, c, 2])
+    if cam[0] == 0.0:
+        s = max(nz, cam[5])
+        return -nx / s, ny / s, s, s
+    fx, fy = cam[1], cam[2]
+    u = (c - cam[3]) / fx
+    v = (cam[4] - r) / fy
+    den = max(nz - nx * u - ny * v, cam[5])
+    return nx / (fx * den), -ny / (fy * den), fx * den, fy * den
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _wplus(z, i, prev, nxt, s, k):  # pragma: no cover - numba
+    """bini's forward weight of pixel ``i`` along one axis (``prev``/``nxt`` its neighbours, -1 for
+    none): ``sigmoid(k * (back^2 - fwd^2))`` of its one-sided differences scaled by ``s``."""
+    fwd = s * (z[nxt] - z[i]) if nxt >= 0 else 0.0
+    back = s * (z[i] - z[prev]) if prev >= 0 else 0.0
+    return 0.5 * (1.0 + np.tanh(0.5 * k * (back * back - fwd * fwd)))
+
+
+@njit(cache=True, nogil=True)
+def _equations(n, dom, up, down, cam, mode, z, k, min_weight, wh, wv, b):  # pragma: no cover - numba
+    """The normal equations' edge weights ``wh``, ``wv`` (float32) and right-hand side ``b`` (zeros on
+    entry). ``mode`` 0: ls (weight 1, the trapezoidal target); 1: bini's first step (one-sided weights
+    1/2); 2: bini's weights from the depth ``z``. Returns bini's energy at ``z`` under those weights
+    (mode 2). An edge's two one-sided equations ``w+ q_a (dz - p_a)^2 + w- q_b (dz - p_b)^2`` add up
+    to one of weight ``w+ q_a + w- q_b`` and target their weighted mean; ``q`` is the squared cosine
+    of the view (a grazing pixel's slope is unreliable and weighs little)."""
     H, W = dom.shape
-    npx = int(dom.sum())
-    idx = np.full((H, W), -1, dtype=np.int32)
-    idx[dom] = np.arange(npx, dtype=np.int32)
-    ha = idx[:, :-1][dom[:, :-1] & dom[:, 1:]]
-    pair = dom[:-1, :] & dom[1:, :]
-    va = idx[:-1, :][pair]
-    vb = idx[1:, :][pair]
-    del idx
-    return ha, np.stack([va, vb])
+    fs, gs = (1.0, 1.0) if cam[0] == 0.0 else (cam[1], cam[2])
+    energy = 0.0
+    i = 0
+    for r in range(H):
+        for c in range(W):
+            if not dom[r, c]:
+                continue
+            pc, pr, sc, sr = _pixel(n, r, c, cam)
+            for axis in range(2):
+                if axis == 0:
+                    if c + 1 >= W or not dom[r, c + 1]:
+                        continue
+                    j = i + 1
+                    pa, qa = pc, (sc / fs) ** 2
+                    pb, _, sb, _ = _pixel(n, r, c + 1, cam)
+                    qb = (sb / fs) ** 2
+                else:
+                    j = down[i]
+                    if j < 0:
+                        continue
+                    pa, qa = pr, (sr / gs) ** 2
+                    _, pb, _, sb = _pixel(n, r + 1, c, cam)
+                    qb = (sb / gs) ** 2
+                if mode == 0:
+                    w, g = 1.0, 0.5 * (pa + pb)
+                else:
+                    if mode == 1:
+                        hp = hm = 0.5
+                    elif axis == 0:
+                        left = i - 1 if c > 0 and dom[r, c - 1] else -1
+                        right = j + 1 if c + 2 < W and dom[r, c + 2] else -1
+                        hp = _wplus(z, i, left, j, sc, k)
+                        hm = 1.0 - _wplus(z, j, i, right, sb, k)
+                    else:
+                        hp = _wplus(z, i, up[i], j, sr, k)
+                        hm = 1.0 - _wplus(z, j, i, down[j], sb, k)
+                    a_, b_ = hp * qa, hm * qb
+                    if mode == 2:
+                        dz = z[j] - z[i]
+                        energy += a_ * (dz - pa) ** 2 + b_ * (dz - pb) ** 2
+                    w, g = max(a_ + b_, min_weight), a_ * pa + b_ * pb
+                if axis == 0:
+                    wh[i] = w
+                else:
+                    wv[i] = w
+                b[i] -= g
+                b[j] += g
+            i += 1
+    return energy
 
 
-def _laplacian(npx: int, ha: NDArray, vab: NDArray, wh: NDArray, wv: NDArray, dtype=np.float64):
-    """The weighted graph Laplacian ``A^T W A`` in CSR, built straight from the edges: row ``i`` holds
-    its up, left, self, right and down neighbours, already in column order (raster indices)."""
-    import scipy.sparse
-
-    va, vb = vab
-    up = np.zeros(npx, dtype=np.int8)
-    left = np.zeros(npx, dtype=np.int8)
-    right = np.zeros(npx, dtype=np.int8)
-    down = np.zeros(npx, dtype=np.int8)
-    up[vb] = 1
-    left[ha + 1] = 1
-    right[ha] = 1
-    down[va] = 1
-    count = 1 + up + left + right + down
-    indptr = np.zeros(npx + 1, dtype=np.int64)
-    np.cumsum(count, out=indptr[1:])
-    del count
-    itype = np.int32 if indptr[-1] < 2**31 else np.int64
-    indptr = indptr.astype(itype)
-    self_slot = indptr[:-1] + up + left
-    del up, left
-    nnz = int(indptr[-1])
-    indices = np.empty(nnz, dtype=itype)
-    data = np.empty(nnz, dtype=dtype)
-    indices[self_slot] = np.arange(npx, dtype=itype)
-    diag = np.bincount(ha, weights=wh, minlength=npx)
-    diag += np.bincount(ha + 1, weights=wh, minlength=npx)
-    diag += np.bincount(va, weights=wv, minlength=npx)
-    diag += np.bincount(vb, weights=wv, minlength=npx)
-    # a pixel with no neighbour keeps its own row (depth 0 of its one-pixel piece)
-    diag[diag == 0] = 1.0
-    data[self_slot] = diag
-    del diag
-    s = self_slot[ha]  # horizontal edge (a, a + 1): right of a, left of a + 1
-    indices[s + 1] = ha + 1
-    data[s + 1] = -wh
-    indices[self_slot[ha + 1] - 1] = ha
-    data[self_slot[ha + 1] - 1] = -wh
-    del s
-    s = self_slot[va] + 1 + right[va]  # vertical (a, b): down of a, up of b (first in b's row)
-    indices[s] = vb
-    data[s] = -wv
-    s = indptr[:-1][vb]
-    indices[s] = va
-    data[s] = -wv
-    return scipy.sparse.csr_matrix((data, indices, indptr), shape=(npx, npx))
-
-
-def _rhs(npx: int, ha: NDArray, vab: NDArray, gh: NDArray, gv: NDArray) -> NDArray[np.float64]:
-    """``A^T W g`` for weighted edge targets ``gh``, ``gv`` (weights folded in)."""
-    va, vb = vab
-    b = np.bincount(ha + 1, weights=gh, minlength=npx)
-    b -= np.bincount(ha, weights=gh, minlength=npx)
-    b += np.bincount(vb, weights=gv, minlength=npx)
-    b -= np.bincount(va, weights=gv, minlength=npx)
-    return b
-
-
-def _solve(N, b: NDArray, x0: NDArray | None, tol: float) -> tuple[NDArray[np.float64], int]:
-    """CG in float64 preconditioned by smoothed-aggregation AMG (pyamg) in the matrix's precision
-    (float32: half the memory of the hierarchy, and a preconditioner needs no more) on the (singular,
-    consistent) Laplacian."""
-    import pyamg
-
-    # weighting "local": the prolongation smoother's scaling from row sums, not from a spectral radius
-    # estimated from a random start, so that the same normals give the same depth bit for bit
-    # symmetry "symmetric": the restriction is the prolongator's transpose view, not a copy
-    strength = ("symmetric", {"theta": _THETA})
-    if _all_strong(N, _THETA):
-        # every edge is strong (ls: unit weights), so the fine level's strength graph is the matrix
-        # itself: no copy of it (the same aggregates as pyamg's own strength)
-        strength = [(None, {}), strength]
-    ml = pyamg.smoothed_aggregation_solver(
-        N,
-        symmetry="symmetric",
-        strength=strength,
-        smooth=("jacobi", {"omega": 4.0 / 3.0, "weighting": "local"}),
-        improve_candidates=None,
-    )
-    cycle = ml.aspreconditioner()
-
-    def precondition(r: NDArray) -> NDArray:
-        return cycle.matvec(r.astype(N.dtype)).astype(np.float64)
-
-    return _cg(N, b, x0, tol, precondition)
-
-
-def _cg(N, b: NDArray, x0: NDArray | None, tol: float, precondition, maxiter: int = 500):
-    """Preconditioned conjugate gradients in float64 on a float32 matrix, stopping at a relative
-    residual ``tol``; ``b`` is overwritten (it becomes the residual). Written out rather than scipy's
-    ``cg`` for memory: the matrix-vector product goes a block of rows at a time, so float64 copies of
-    the matrix's values are a block's, not the whole matrix's; and it holds four vectors and no more."""
-    from scipy.linalg.blas import daxpy
-
-    n = N.shape[0]
-    bounds = np.linspace(0, n, 9).astype(np.int64)  # 8 blocks of rows
-    blocks = []
-    for lo, hi in itertools.pairwise(bounds):
-        s, e = int(N.indptr[lo]), int(N.indptr[hi])
-        ptr = N.indptr[lo : hi + 1] - N.indptr[lo]
-        blocks.append((lo, hi, type(N)((N.data[s:e], N.indices[s:e], ptr), shape=(hi - lo, n))))
-
-    def matvec(v: NDArray) -> NDArray:
-        out = np.empty(n)
-        for lo, hi, blk in blocks:
-            out[lo:hi] = blk @ v
-        return out
-
-    bnorm = float(np.linalg.norm(b))
-    if x0 is None:
-        x = np.zeros(n)
-    else:
-        x = np.array(x0, dtype=np.float64)
-        daxpy(matvec(x), b, a=-1.0)
-    r = b
-    if bnorm == 0.0 or float(np.linalg.norm(r)) <= tol * bnorm:
-        return x, 0
-    p = precondition(r)
-    rz = float(np.dot(r, p))
-    its = 0
-    while its < maxiter:
-        its += 1
-        q = matvec(p)
-        pq = float(np.dot(p, q))
-        # p can be all but a null vector of this singular matrix (a constant per piece): pq is then
-        # rounding noise of either sign, and the step along p harmless, as in scipy's cg
-        if pq == 0.0:
-            break
-        alpha = rz / pq
-        daxpy(p, x, a=alpha)
-        daxpy(q, r, a=-alpha)
-        del q
-        if float(np.linalg.norm(r)) <= tol * bnorm:
-            break
-        z = precondition(r)
-        rz, rz_old = float(np.dot(r, z)), rz
-        if rz_old == 0.0:
-            break
-        daxpy(p, z, a=rz / rz_old)
-        p = z
-        del z
-    return x, its
-
-
-def _all_strong(N, theta: float) -> bool:
-    """Whether each off-diagonal entry passes pyamg's symmetric strength test
-    ``|a_ij| >= theta * sqrt(a_ii * a_jj)``, checked against the largest diagonal."""
-    off = N.data[N.data < 0]
-    return off.size == 0 or float(-off.max()) >= theta * float(N.diagonal().max())
-
-
-def _pieces(dom: NDArray[np.bool_]) -> tuple[int, NDArray[np.int32]]:
-    """Connected pieces of the domain under 4-neighbour edges (every edge has a weight > 0), and each
-    domain pixel's piece in raster order."""
-    import scipy.ndimage
-
-    lab, n = scipy.ndimage.label(dom, structure=[[0, 1, 0], [1, 1, 1], [0, 1, 0]])
-    return int(n), (lab[dom] - 1).astype(np.int32, copy=False)
-
-
-def _targets(
-    n: NDArray, dom: NDArray[np.bool_], camera: Camera | None, min_nz: float
-) -> tuple[NDArray, NDArray, NDArray, NDArray]:
-    """Per domain pixel (raster order): the unknown's slopes along columns and rows, and the scales
-    that turn a difference of the unknown into pixel-like units (bini's one-sided differences)."""
-    nd = n[dom].astype(np.float64)  # (npx, 3)
-    if camera is None:
-        sc = np.maximum(nd[:, 2], min_nz)
-        return -nd[:, 0] / sc, nd[:, 1] / sc, sc, sc
+@njit(cache=True, nogil=True)
+def _ls_residual(n, dom, down, cam, z):  # pragma: no cover - numba
+    """``(sum of squares, largest, count)`` of the ls equations' residuals ``dz - (p_a + p_b) / 2``, in
+    pixels (perspective: times the mean focal length)."""
     H, W = dom.shape
-    u, v = camera.rays(H, W)
-    rows, cols = np.nonzero(dom)
-    den = nd[:, 2] - nd[:, 0] * u[0, cols] - nd[:, 1] * v[rows, 0]
-    del rows, cols
-    den = np.maximum(den, min_nz)
-    pc, pr = nd[:, 0] / (camera.fx * den), -nd[:, 1] / (camera.fy * den)
-    return pc, pr, camera.fx * den, camera.fy * den
+    scale = 1.0 if cam[0] == 0.0 else 0.5 * (cam[1] + cam[2])
+    sq, top, m = 0.0, 0.0, 0
+    i = 0
+    for r in range(H):
+        for c in range(W):
+            if not dom[r, c]:
+                continue
+            pc, pr, _, _ = _pixel(n, r, c, cam)
+            if c + 1 < W and dom[r, c + 1]:
+                pb = _pixel(n, r, c + 1, cam)[0]
+                e = abs((z[i + 1] - z[i]) - 0.5 * (pc + pb)) * scale
+                sq += e * e
+                top = max(top, e)
+                m += 1
+            j = down[i]
+            if j >= 0:
+                pb = _pixel(n, r + 1, c, cam)[1]
+                e = abs((z[j] - z[i]) - 0.5 * (pr + pb)) * scale
+                sq += e * e
+                top = max(top, e)
+                m += 1
+            i += 1
+    return sq, top, m
 
 
-def _trapezoid(ha: NDArray, vab: NDArray, pc: NDArray, pr: NDArray) -> tuple[NDArray, NDArray]:
-    """The ls targets: the mean of an edge's two slopes."""
-    return 0.5 * (pc[ha] + pc[ha + 1]), 0.5 * (pr[vab[0]] + pr[vab[1]])
-
-
-def _bini_weights(
-    z: NDArray, npx: int, ha: NDArray, vab: NDArray, sc: NDArray, sr: NDArray, k: float
-) -> tuple[NDArray, NDArray, NDArray, NDArray]:
-    """Bini's one-sided weights per edge end: ``(w+ of the first pixel, w- of the second)`` for the
-    horizontal and the vertical edges. A one-sided difference is ``scale * (difference of the unknown)``
-    (pixels, times the cosine of the view as in the paper's equations); a missing neighbour counts as 0."""
-    va, vb = vab
-    dh = z[ha + 1] - z[ha]
-    dv = z[vb] - z[va]
-    fwd_c = np.zeros(npx)
-    back_c = np.zeros(npx)
-    fwd_c[ha] = dh
-    back_c[ha + 1] = dh
-    fwd_c *= sc
-    back_c *= sc
-    wc = _sigmoid(k * (back_c**2 - fwd_c**2))  # w+ along columns, per pixel
-    del fwd_c, back_c
-    fwd_r = np.zeros(npx)
-    back_r = np.zeros(npx)
-    fwd_r[va] = dv
-    back_r[vb] = dv
-    fwd_r *= sr
-    back_r *= sr
-    wr = _sigmoid(k * (back_r**2 - fwd_r**2))
-    return wc[ha], 1.0 - wc[ha + 1], wr[va], 1.0 - wr[vb]
-
-
-def _sigmoid(x: NDArray) -> NDArray:
-    return 0.5 * (1.0 + np.tanh(0.5 * x))  # = 1 / (1 + exp(-x)) without overflow
+@njit(cache=True, nogil=True)
+def _pieces(wh, down, lab):  # pragma: no cover - numba
+    """Connected pieces of the domain (its 4-neighbour edges: ``wh[i] != 0`` to ``i + 1``, ``down``):
+    each pixel's piece into ``lab`` (numbered in raster order of their first pixel); returns how many."""
+    n = lab.size
+    for i in range(n):
+        lab[i] = i
+    for i in range(n):
+        for e in range(2):
+            j = (i + 1 if wh[i] != 0.0 else -1) if e == 0 else down[i]
+            if j < 0:
+                continue
+            a, b = i, j
+            while lab[a] != a:
+                a = lab[a]
+            while lab[b] != b:
+                b = lab[b]
+            lab[max(a, b)] = min(a, b)
+    count = 0
+    for i in range(n):  # a parent comes before its children, so it is numbered already
+        if lab[i] == i:
+            lab[i] = count
+            count += 1
+        else:
+            lab[i] = lab[lab[i]]
+    return count
 
 
 def integrate(
@@ -418,10 +329,11 @@ def integrate(
         raise InvalidInputError(f"bini's k must be a positive number, got {k!r}")
     n = np.asarray(normal)
     H, W = n.shape[:2]
-    dom = np.isfinite(n).all(axis=2)
+    dom = np.isfinite(n[..., 0])  # a channel at a time: no (H, W, 3) temporary
+    dom &= np.isfinite(n[..., 1])
+    dom &= np.isfinite(n[..., 2])
     if mask is not None:
         dom &= np.asarray(mask, dtype=bool)
-    depth = np.full((H, W), np.nan, dtype=np.float32)
     npx = int(dom.sum())
     params: dict = (
         {"k": k, "bini_tol": bini_tol, "max_iterations": max_iterations} if method == "bini" else {}
@@ -433,69 +345,60 @@ def integrate(
     cam = "orthographic" if camera is None else "perspective"
     if npx == 0:
         return DepthResult(
-            depth, method.value, DESCRIPTIONS[method], units, 0.0, 0.0, 0, 0, 0, min_nz, cam, tol
+            np.full((H, W), np.nan, dtype=np.float32),
+            method.value,
+            DESCRIPTIONS[method],
+            units,
+            0.0,
+            0.0,
+            0,
+            0,
+            0,
+            min_nz,
+            cam,
+            tol,
         )
-    # one code path for both methods: the ls solve (bini's start) holds only the matrix, its right-hand
-    # side and the solver; the slopes and edges are made again afterwards, which is cheaper than keeping them
-    ha, vab = _structure(dom)
-    pc, pr, _, _ = _targets(n, dom, camera, min_nz)
-    rhs = _rhs(npx, ha, vab, *_trapezoid(ha, vab, pc, pr))
-    del pc, pr
-    N = _laplacian(npx, ha, vab, np.ones(ha.size), np.ones(vab.shape[1]), np.float32)
-    del ha, vab
-    z, cg = _solve(N, rhs, None, tol)
-    del N, rhs
-    ha, vab = _structure(dom)
-    va, vb = vab
-    pc, pr, sc, sr = _targets(n, dom, camera, min_nz)
+    # the stencil of the normal equations (edge weights, float32) and its right-hand side; the slopes
+    # are made again from the normals wherever needed rather than kept: memory is what the solve holds
+    par = np.array(
+        [0.0, 1.0, 1.0, 0.0, 0.0, min_nz]
+        if camera is None
+        else [1.0, camera.fx, camera.fy, camera.cx, camera.cy, min_nz]
+    )
+    up, down = grid_links(dom)
+    wh = np.zeros(npx, dtype=np.float32)
+    wv = np.zeros(npx, dtype=np.float32)
+    b = np.zeros(npx)
+    z = np.zeros(npx)
+    _equations(n, dom, up, down, par, 0, z, k, _MIN_WEIGHT, wh, wv, b)
+    cg = solve(dom, wh, wv, up, down, b, z, tol)
     iterations = 0
     if method == DepthMethod.BINI:
-        # the paper's equations are scaled by the cosine of the view (nz, or den in perspective):
-        # a grazing pixel's slope is unreliable and weighs little
-        qc = (sc / (1.0 if camera is None else camera.fx)) ** 2
-        qr = (sr / (1.0 if camera is None else camera.fy)) ** 2
-        hp, hm, vp, vm = (np.full(e.size, 0.5) for e in (ha, ha, va, va))
+        b[:] = 0.0
+        _equations(n, dom, up, down, par, 1, z, k, _MIN_WEIGHT, wh, wv, b)  # one-sided weights 1/2
         energy = None
         while iterations < max_iterations:
             iterations += 1
-            a_h, b_h, a_v, b_v = hp * qc[ha], hm * qc[ha + 1], vp * qr[va], vm * qr[vb]
-            wh = np.maximum(a_h + b_h, _MIN_WEIGHT)
-            wv = np.maximum(a_v + b_v, _MIN_WEIGHT)
-            gh = a_h * pc[ha] + b_h * pc[ha + 1]
-            gv = a_v * pr[va] + b_v * pr[vb]
-            del a_h, b_h, a_v, b_v
-            N = _laplacian(npx, ha, vab, wh, wv, np.float32)
-            del wh, wv
-            z, its = _solve(N, _rhs(npx, ha, vab, gh, gv), z, max(tol, _BINI_CG_TOL))
-            del N, gh, gv
-            cg += its
-            hp, hm, vp, vm = _bini_weights(z, npx, ha, vab, sc, sr, k)
-            new = _bini_energy(z, ha, vab, pc, pr, hp * qc[ha], hm * qc[ha + 1], vp * qr[va], vm * qr[vb])
+            cg += solve(dom, wh, wv, up, down, b, z, max(tol, _BINI_CG_TOL))
+            # the next step's equations, and the energy at z under their weights
+            b[:] = 0.0
+            new = _equations(n, dom, up, down, par, 2, z, k, _MIN_WEIGHT, wh, wv, b)
             done = energy is not None and abs(energy - new) <= bini_tol * max(energy, 1e-300)
             energy = new
             if done:
                 break
         params["iterations"] = iterations
-    del sc, sr
-    # residuals of the ls equations, one direction at a time
-    sq, top, m = 0.0, 0.0, 0
-    for a, b, t in ((ha, ha + 1, 0.5 * (pc[ha] + pc[ha + 1])), (va, vb, 0.5 * (pr[va] + pr[vb]))):
-        res = (z[b] - z[a]) - t
-        del t
-        if camera is not None:
-            res *= 0.5 * (camera.fx + camera.fy)
-        if res.size:
-            sq += float(np.dot(res, res))
-            top = max(top, float(np.abs(res).max()))
-        m += res.size
-        del res
-    del pc, pr, ha, vab, va, vb
-    pieces, lab = _pieces(dom)
+    del wv, b, up
+    sq, top, m = _ls_residual(n, dom, down, par, z)
+    lab = np.empty(npx, dtype=np.int32)
+    pieces = _pieces(wh, down, lab)
+    del wh, down
     counts = np.maximum(np.bincount(lab, minlength=pieces), 1)
     z -= (np.bincount(lab, weights=z, minlength=pieces) / counts)[lab]
     if camera is not None:
         z = -np.exp(z) * (1.0 if distance is None else distance)
-    depth[dom] = z.astype(np.float32)
+    depth = np.full((H, W), np.nan, dtype=np.float32)
+    depth[dom] = z
     return DepthResult(
         depth=depth,
         method=method.value,
@@ -512,14 +415,6 @@ def integrate(
         cg_iterations=int(cg),
         params=params,
     )
-
-
-def _bini_energy(z, ha, vab, pc, pr, hp, hm, vp, vm) -> float:
-    va, vb = vab
-    dh = z[ha + 1] - z[ha]
-    dv = z[vb] - z[va]
-    e = np.sum(hp * (dh - pc[ha]) ** 2) + np.sum(hm * (dh - pc[ha + 1]) ** 2)
-    return float(e + np.sum(vp * (dv - pr[va]) ** 2) + np.sum(vm * (dv - pr[vb]) ** 2))
 
 
 def _method(method: DepthMethod | str) -> DepthMethod:

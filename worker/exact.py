@@ -21,6 +21,22 @@ otherwise the box **shrinks** to the hull, first in z (the lights' common
 direction, where slabs are thinnest), then in x and y, and its slabs are
 re-classified from fresh dot products.
 
+In boxes with many crossing slabs (``_BIN_P``) the intervals are counted in
+bins instead (O(p) where keeping the extremes costs O(p g)); starts are binned
+rounded down and ends rounded up, so the binned hull holds the exact one.
+
+A box **one slab** from being pruned needs a point inside every crossing slab:
+a small LP (Seidel's incremental algorithm in 3-D, only the slab faces that
+cut the box) decides it, a point (recounted, a new incumbent) or none (pruned),
+where bisection would split it again and again along the faces. A box **two
+slabs** away with few crossing slabs (``_LP_GAP_P``) is decided the same way:
+where the LP has no point, its infeasible core (at most four slabs that with the
+box already hold none, from the constraints the algorithm was moving between)
+names the slabs one of which a better point must miss, and the LP runs again
+without each in turn. The LP widens every slab and the box by a margin far
+above rounding and calls near ties undecided (the box is then split as before),
+so it prunes only boxes that hold no better point.
+
 A box with at most three crossing slabs is solved exactly by enumerating the
 vertices of its crossing planes and faces, as is a box shrunk below ``hmin``,
 which keeps the search finite and exact in degenerate arrangements.
@@ -31,7 +47,8 @@ every usable light) before it is accepted. The cached, incrementally updated
 exactly on a slab face would then claim an inlier it does not hold, and pruning
 against that inflated count would discard the true optimum.
 
-The search is depth-first, better child first, seeded with good incumbents (the
+The search is depth-first, the child whose centre holds more slabs first (then
+the larger bound), seeded with good incumbents (the
 previous pixel's and, when given, the pixel above's solution, trimmed least
 squares, and alternating projections onto the slabs when least squares misses
 only a few usable images); it stops at once when an incumbent holds every usable
@@ -55,7 +72,9 @@ from maxfs.worker.problem import REL_TOL
 
 _STACK = 256  # DFS depth bound; a box this deep is far below ``hmin`` already
 _HMIN_REL = 1e-4  # enumerate the vertices of boxes narrower than this times the widest half-width
-_SHRINK_GAP = 24  # run the 1-D depth test in boxes at most this many slabs from being pruned
+_SHRINK_GAP = 48  # run the 1-D depth test in boxes at most this many slabs from being pruned
+_BIN_P = 20  # in boxes with at least this many crossing slabs the 1-D test counts intervals in bins
+_BINS = 64  # at most this many bins (two per crossing slab)
 _SHRINK_KEEP = 0.9  # apply a shrink only when it cuts the box's width along the axis by 10 % or more
 _ENUM_P = 3  # enumerate vertices in boxes with at most this many crossing slabs
 _AP_GAP = 3  # alternating projections when the incumbent misses at most this many usable images
@@ -198,6 +217,20 @@ def _keep_largest(buf, size, n, x):  # pragma: no cover - numba
 
 
 @njit(cache=True, nogil=True)
+def _interval(absL, invL, j, v, rad, lj, hj, d, hd):  # pragma: no cover - numba
+    """Offsets ``s`` along axis ``d`` (within ``+-hd``) where slab ``j``, at ``L.c = v``
+    with half-range ``rad`` over the box, can hold a point of the box."""
+    # the slab, with the coordinate along d at c_d + s, reaches v + L_jd s +- ro
+    ro = max(rad - absL[j, d] * hd, 0.0)
+    iv = invL[j, d]
+    if iv == 0.0:  # L_jd = 0: no information along this axis
+        return -hd, hd
+    t0 = (lj - v - ro) * iv  # sign-free: the interval lies between the two scaled bounds
+    t1 = (hj - v + ro) * iv
+    return max(min(t0, t1), -hd), min(max(t0, t1), hd)
+
+
+@njit(cache=True, nogil=True)
 def _hull_pass(
     L, absL, invL, lo, hi, prow, pvrow, prrow, p, f, d, hd, pd, dc, dh, n, bs, bneg
 ):  # pragma: no cover - numba
@@ -229,20 +262,79 @@ def _hull_pass(
         cc += cross & (v >= lj) & (v <= hj)
         q2 += cross
         if cross:
-            # the slab, with the coordinate along d at c_d + s, reaches v + L_jd s +- ro
-            ro = max(rad - absL[j, d] * hd, 0.0)
-            iv = invL[j, d]
-            if iv != 0.0:  # sign-free: the interval lies between the two scaled bounds
-                t0 = (lj - v - ro) * iv
-                t1 = (hj - v + ro) * iv
-                s0 = max(min(t0, t1), -hd)
-                s1 = min(max(t0, t1), hd)
-            else:  # L_jd = 0: no information along this axis
-                s0 = -hd
-                s1 = hd
+            s0, s1 = _interval(absL, invL, j, v, rad, lj, hj, d, hd)
             ns = _keep_largest(bs, ns, n, s0)
             ne = _keep_largest(bneg, ne, n, -s1)
     return f, q2, cc, ns
+
+
+@njit(cache=True, nogil=True)
+def _hull_pass_bins(
+    L, absL, invL, lo, hi, prow, pvrow, prrow, p, f, d, hd, pd, dc, dh, hs, he
+):  # pragma: no cover - numba
+    """:func:`_hull_pass` for boxes with many crossing slabs: the intervals along axis ``d``
+    are counted in ``nb`` equal bins of ``[-hd, hd]`` (``hs`` starts, ``he`` ends; see
+    :func:`_sweep_bins`), O(p + nb) where keeping the extremes costs O(p g).
+    A start is binned rounded down and an end rounded up, so the bins can only
+    under-count the intervals that miss a point. Returns (f, p, slabs of the row
+    holding the centre, nb). A separate function: the binned branch inside
+    :func:`_hull_pass` slowed its small boxes by a third.
+    """
+    nb = min(_BINS, max(8, 2 * p))
+    for i in range(nb):
+        hs[i] = 0
+        he[i] = 0
+    iw = nb / (2.0 * hd)
+    q2 = 0
+    cc = 0
+    for q in range(p):
+        j = prow[q]
+        v = pvrow[q] + L[j, pd] * dc
+        rad = prrow[q] + absL[j, pd] * dh
+        lj = lo[j]
+        hj = hi[j]
+        full = (v - rad >= lj) & (v + rad <= hj)
+        cross = (v + rad >= lj) & (v - rad <= hj) & (not full)
+        f += full
+        prow[q2] = j
+        pvrow[q2] = v
+        prrow[q2] = rad
+        cc += cross & (v >= lj) & (v <= hj)
+        q2 += cross
+        if cross:
+            s0, s1 = _interval(absL, invL, j, v, rad, lj, hj, d, hd)
+            b0 = min(max(int((s0 + hd) * iw - 1e-6), 0), nb - 1)
+            b1 = min(max(int((s1 + hd) * iw + 1e-6), 0), nb - 1)
+            hs[b0] += 1
+            he[b1] += 1
+    return f, q2, cc, nb
+
+
+@njit(cache=True, nogil=True)
+def _sweep_bins(hs, he, nb, g, hd):  # pragma: no cover - numba
+    """:func:`_sweep` on binned intervals: a hull ``[smin, smax]`` that holds every offset
+    where at most ``g`` intervals miss. In bin ``b`` at least the starts of higher bins and
+    the ends of lower ones miss; the hull spans the bins where those are at most ``g``.
+    Returns (nonempty, smin, smax).
+    """
+    w = 2.0 * hd / nb
+    tot = 0
+    for i in range(nb):
+        tot += hs[i]
+    above = tot  # starts in bins > b
+    below = 0  # ends in bins < b
+    bmin = -1
+    bmax = -1
+    for b in range(nb):
+        above -= hs[b]
+        if above + below <= g:
+            if bmin < 0:
+                bmin = b
+            bmax = b
+        below += he[b]
+    if bmin < 0:
+        return False, 0.0, 0.0
+    return True, -hd + bmin * w, hd if bmax == nb - 1 else -hd + (bmax + 1) * w
 
 
 @njit(cache=True, nogil=True)
@@ -292,6 +384,238 @@ def _sweep(bs, bneg, g):  # pragma: no cover - numba
     return True, smin, smax
 
 
+_LP_GAP = 2  # LPs decide boxes at most this many slabs from being pruned (up to 4 ** (gap - 1) LPs) ...
+_LP_GAP_P = 12  # ... and above one slab only with at most this many crossing slabs (an LP costs O(p) or more)
+_LP_PAR = 1e-6  # an LP row with coefficients below this (relative) is "parallel": decided by its constant
+_LP_SLACK = (
+    1e-6  # the LP's slabs and box are widened by this times the box's scale: it only prunes by a margin
+)
+_NONE = -1  # an LP row or constraint that is a face of the box, not of a slab
+
+
+@njit(cache=True, nogil=True)
+def _lp_line(A2, b2, i, ulo, uhi, vlo, vhi, u0, v0, T):  # pragma: no cover - numba
+    """The 1-D step of :func:`_lp_plane`: on the line ``A2[i] . y = b2[i]``, a point of the
+    rows before ``i`` and the box. Returns (status, u, v, jlo, jhi) with status as
+    :func:`_lp_box`'s; where there is no point, ``jlo`` and ``jhi`` are the rows (or
+    ``_NONE`` for the box) that leave none with row ``i``."""
+    none = np.int64(_NONE)
+    a0 = A2[i, 0]
+    a1 = A2[i, 1]
+    par = _LP_PAR * T
+    if abs(a0) < _LP_PAR and abs(a1) < _LP_PAR:  # no line: the row holds everywhere or nowhere
+        st = np.int64(0) if b2[i] < -2.0 * par else np.int64(-1)
+        return st, 0.0, 0.0, none, none
+    swap = abs(a1) > abs(a0)  # y_k0 = (b - a_k1 t) / a_k0 along t = y_k1, with |a_k0| the larger
+    ak0 = a1 if swap else a0
+    ak1 = a0 if swap else a1
+    r = ak1 / ak0
+    y0 = b2[i] / ak0
+    k0lo = vlo if swap else ulo
+    k0hi = vhi if swap else uhi
+    tlo = ulo if swap else vlo
+    thi = uhi if swap else vhi
+    jlo = none
+    jhi = none
+    # box of y_k0: y0 - r t in [k0lo, k0hi]
+    if r > _LP_PAR:
+        tlo = max(tlo, (y0 - k0hi) / r)
+        thi = min(thi, (y0 - k0lo) / r)
+    elif r < -_LP_PAR:
+        tlo = max(tlo, (y0 - k0lo) / r)
+        thi = min(thi, (y0 - k0hi) / r)
+    elif y0 < k0lo - par or y0 > k0hi + par:
+        return np.int64(0), 0.0, 0.0, none, none
+    elif y0 < k0lo + par or y0 > k0hi - par:
+        return np.int64(-1), 0.0, 0.0, none, none
+    for j in range(i):
+        g0 = A2[j, 1] if swap else A2[j, 0]
+        g1 = A2[j, 0] if swap else A2[j, 1]
+        al = g1 - g0 * r
+        be = b2[j] - g0 * y0
+        if al > _LP_PAR:
+            t = be / al
+            if t < thi:
+                thi = t
+                jhi = j
+        elif al < -_LP_PAR:
+            t = be / al
+            if t > tlo:
+                tlo = t
+                jlo = j
+        elif be < -par:
+            return np.int64(0), 0.0, 0.0, j, none
+        elif be < par:
+            return np.int64(-1), 0.0, 0.0, none, none
+    if tlo > thi:
+        return (np.int64(0) if tlo > thi + 1e-7 * T else np.int64(-1)), 0.0, 0.0, jlo, jhi
+    t = min(max(u0 if swap else v0, tlo), thi)  # stay near the previous point: fewer later moves
+    yk0 = y0 - r * t
+    if swap:
+        return np.int64(1), t, yk0, none, none
+    return np.int64(1), yk0, t, none, none
+
+
+@njit(cache=True, nogil=True)
+def _lp_plane(A2, b2, n2, ulo, uhi, vlo, vhi, u, v, T):  # pragma: no cover - numba
+    """The 2-D step of :func:`_lp_box` (Seidel's incremental LP): a point of ``A2 y <= b2``
+    in the box ``[ulo, uhi] x [vlo, vhi]``. Returns (status, u, v, i, jlo, jhi): where there
+    is no point, rows ``i``, ``jlo``, ``jhi`` (``_NONE``: the box) leave none."""
+    u = min(max(u, ulo), uhi)
+    v = min(max(v, vlo), vhi)
+    for i in range(n2):
+        if A2[i, 0] * u + A2[i, 1] * v <= b2[i]:
+            continue
+        st, u, v, jlo, jhi = _lp_line(A2, b2, i, ulo, uhi, vlo, vhi, u, v, T)
+        if st != 1:
+            return st, u, v, np.int64(i), jlo, jhi
+    none = np.int64(_NONE)
+    return np.int64(1), u, v, none, none, none
+
+
+@njit(cache=True, nogil=True)
+def _lp_box(L, lo, hi, row, pv, pr, p, skip, c, h, H, hb, hq, A2, b2, x, core):  # pragma: no cover - numba
+    """Does the box ``c +- h`` hold a point inside every slab of ``row[:p]`` but those
+    whose position ``q`` has ``skip[q]``?
+
+    Seidel's incremental LP in 3-D (a point of the constraints so far; a violated one
+    moves the point onto its plane, a 2-D problem, and so on to a line). Only a point is
+    needed, so the objective is any generic direction. The slabs and the box are widened
+    by ``_LP_SLACK`` times the box's scale and rows nearly parallel to a line are decided
+    by a margin, so "no point" is said only with room to spare for rounding; a near call
+    is -1 (unknown). Returns 1 (a point, in ``x``), 0 (none) or -1.
+
+    Where there is none, ``core[:4]`` holds the positions ``q`` of at most four slabs that
+    with the box already hold no point (``_NONE`` for unused entries): a point that
+    was feasible for the constraints before a violated one, and their convex set does not
+    meet the violated plane, so it lies wholly outside it; the same holds on the plane and
+    on the line, so the violated constraints of the three levels and the two that empty
+    the line hold no common point.
+    """
+    T = 0.0
+    for d in range(3):
+        T = max(T, abs(c[d]) + h[d])
+    sl = _LP_SLACK * T
+    n = 0
+    for q in range(p):
+        if skip[q]:
+            continue
+        j = row[q]
+        # only the faces that cut the box: the box implies the others (pv +- pr bound L.n there)
+        if pv[q] + pr[q] > hi[j]:
+            for d in range(3):
+                H[n, d] = L[j, d]
+            hb[n] = hi[j] + sl
+            hq[n] = q
+            n += 1
+        if pv[q] - pr[q] < lo[j]:
+            for d in range(3):
+                H[n, d] = -L[j, d]
+            hb[n] = sl - lo[j]
+            hq[n] = q
+            n += 1
+    for d in range(3):
+        x[d] = c[d]
+    for t in range(4):
+        core[t] = _NONE
+    for i in range(n):
+        if H[i, 0] * x[0] + H[i, 1] * x[1] + H[i, 2] * x[2] <= hb[i]:
+            continue
+        e = 0  # eliminate the coordinate with the largest coefficient: x_e = e0 - r1 x_d1 - r2 x_d2
+        if abs(H[i, 1]) > abs(H[i, e]):
+            e = 1
+        if abs(H[i, 2]) > abs(H[i, e]):
+            e = 2
+        d1 = (e + 1) % 3
+        d2 = (e + 2) % 3
+        piv = H[i, e]
+        r1 = H[i, d1] / piv
+        r2 = H[i, d2] / piv
+        e0 = hb[i] / piv
+        A2[0, 0] = -r1  # rows 0 and 1: the box along x_e
+        A2[0, 1] = -r2
+        b2[0] = c[e] + h[e] + sl - e0
+        A2[1, 0] = r1
+        A2[1, 1] = r2
+        b2[1] = e0 - (c[e] - h[e] - sl)
+        for j in range(i):
+            A2[j + 2, 0] = H[j, d1] - H[j, e] * r1
+            A2[j + 2, 1] = H[j, d2] - H[j, e] * r2
+            b2[j + 2] = hb[j] - H[j, e] * e0
+        st, u, v, i2, jlo, jhi = _lp_plane(
+            A2,
+            b2,
+            i + 2,
+            c[d1] - h[d1] - sl,
+            c[d1] + h[d1] + sl,
+            c[d2] - h[d2] - sl,
+            c[d2] + h[d2] + sl,
+            x[d1],
+            x[d2],
+            T,
+        )
+        if st != 1:
+            if st == 0:
+                core[0] = hq[i]
+                if i2 >= 2:
+                    core[1] = hq[i2 - 2]
+                if jlo >= 2:
+                    core[2] = hq[jlo - 2]
+                if jhi >= 2:
+                    core[3] = hq[jhi - 2]
+            return st
+        x[d1] = u
+        x[d2] = v
+        x[e] = e0 - r1 * u - r2 * v
+    return np.int64(1)
+
+
+@njit(cache=True, nogil=True)
+def _lp_search(L, lo, hi, idx, m, row, pv, pr, p, f, c, h, best, bp, lpw):  # pragma: no cover - numba
+    """Decide a box whose crossing slabs ``row[:p]`` may miss at most ``g = f + p - best - 1``
+    by LPs, without splitting it: the LP over every crossing slab, and where it has no
+    point, the same with one slab of its infeasible core (at most four) left out, and so on
+    to depth ``g`` (a point must miss one of each core). Returns (status, best): 0 no point
+    beats ``best`` (prune), 1 a better incumbent was claimed, -1 undecided (an LP was).
+    """
+    H, hb, hq, A2, b2, skip, x, cs, cores = lpw
+    g = f + p - best - 1
+    for q in range(p):
+        skip[q] = False
+    # depth-first over the choices; level t drops core entry cs[t] of the core found there
+    t = 0
+    undecided = False
+    while True:
+        st = _lp_box(L, lo, hi, row, pv, pr, p, skip, c, h, H, hb, hq, A2, b2, x, cores[t])
+        if st == 1:
+            for d in range(3):
+                x[d] = min(max(x[d], c[d] - h[d]), c[d] + h[d])
+            nb = _claim(L, lo, hi, idx, m, x[0], x[1], x[2], best, bp)
+            if nb > best:
+                return np.int64(1), nb
+            undecided = True
+        elif st == -1:
+            undecided = True
+        elif t < g:  # descend: drop the first entry of this core
+            cs[t] = -1
+            t += 1
+        # next choice: advance the deepest level with an untried core entry
+        while t > 0:
+            lvl = t - 1
+            if cs[lvl] >= 0:
+                skip[cores[lvl, cs[lvl]]] = False
+            cs[lvl] += 1
+            while cs[lvl] < 4 and cores[lvl, cs[lvl]] == _NONE:
+                cs[lvl] += 1
+            if cs[lvl] < 4:
+                skip[cores[lvl, cs[lvl]]] = True
+                break
+            t -= 1
+        if t == 0:
+            break
+    return (np.int64(-1) if undecided else np.int64(0)), best
+
+
 @njit(cache=True, nogil=True)
 def _bnb(
     L,
@@ -320,6 +644,9 @@ def _bnb(
     pr,
     bs,
     bneg,
+    lpw,
+    hs,
+    he,
 ):  # pragma: no cover - numba
     """Depth-first branch and bound; returns (best, nodes, certified).
 
@@ -351,6 +678,7 @@ def _bnb(
     zero, one = np.int64(0), np.int64(1)  # not literals (see the note on np.int64 above)
     c = np.empty(3)
     h = np.empty(3)
+    st = np.int64(0)
     while top > 0:
         top -= 1
         f = stf[top]
@@ -377,26 +705,32 @@ def _bnb(
             for t in range(3):
                 d = 2 if t == 0 else t - 1
                 # keep g + 1 = f + p - best ends: re-classification can only lower g
-                f, p, cc, _ = _hull_pass(
-                    L,
-                    absL,
-                    invL,
-                    lo,
-                    hi,
-                    prow,
-                    pvrow,
-                    prrow,
-                    p,
-                    f,
-                    d,
-                    h[d],
-                    pd,
-                    dc,
-                    dh,
-                    f + p - best,
-                    bs,
-                    bneg,
-                )
+                nbin = np.int64(0)
+                if p >= _BIN_P:  # many slabs: a histogram of the intervals instead of kept extremes
+                    f, p, cc, nbin = _hull_pass_bins(
+                        L, absL, invL, lo, hi, prow, pvrow, prrow, p, f, d, h[d], pd, dc, dh, hs, he
+                    )
+                else:
+                    f, p, cc, _ = _hull_pass(
+                        L,
+                        absL,
+                        invL,
+                        lo,
+                        hi,
+                        prow,
+                        pvrow,
+                        prrow,
+                        p,
+                        f,
+                        d,
+                        h[d],
+                        pd,
+                        dc,
+                        dh,
+                        f + p - best,
+                        bs,
+                        bneg,
+                    )
                 pd = np.int64(0)
                 dc = 0.0
                 dh = 0.0
@@ -407,7 +741,10 @@ def _bnb(
                     break
                 if f > best or p <= _ENUM_P:
                     break
-                ok, smin, smax = _sweep(bs, bneg, f + p - best - 1)
+                if nbin > 0:
+                    ok, smin, smax = _sweep_bins(hs, he, nbin, f + p - best - 1, h[d])
+                else:
+                    ok, smin, smax = _sweep(bs, bneg, f + p - best - 1)
                 if not ok:
                     pruned = True
                     break
@@ -422,6 +759,22 @@ def _bnb(
                 c[d] = c[d] + dc
                 h[d] = hn
             if pruned:
+                continue
+        if f + p - best <= _LP_GAP and p > _ENUM_P:
+            # a box a few slabs from being pruned: LPs decide it without splitting it
+            if dc != 0.0 or dh != 0.0:
+                f, p, _, _ = _hull_pass(
+                    L, absL, invL, lo, hi, prow, pvrow, prrow, p, f, zero, h[0], pd, dc, dh, one, bs, bneg
+                )
+                pd = zero
+                dc = 0.0
+                dh = 0.0
+            st = np.int64(-1)
+            while best < f + p <= best + (_LP_GAP if p <= _LP_GAP_P else 1):
+                st, best = _lp_search(L, lo, hi, idx, m, prow, pvrow, prrow, p, f, c, h, best, bp, lpw)
+                if st != 1:
+                    break
+            if f + p <= best or st == 0:
                 continue
         if p <= _ENUM_P:
             if dc != 0.0 or dh != 0.0:
@@ -508,7 +861,7 @@ def _bnb(
         if f1 + c1 > best:
             best = _claim(L, lo, hi, idx, m, stc[top + 1, 0], stc[top + 1, 1], stc[top + 1, 2], best, bp)
         # the child with the larger bound goes on top, to be explored first
-        if f0 + p0 > f1 + p1:
+        if f0 + c0 > f1 + c1 or (f0 + c0 == f1 + c1 and f0 + p0 > f1 + p1):
             for d in range(3):
                 t0 = stc[top, d]
                 stc[top, d] = stc[top + 1, d]
@@ -621,6 +974,19 @@ def solve_exact(
     pr = np.empty((_STACK, k))
     bs = np.empty(k + 1)
     bneg = np.empty(k + 1)
+    hs = np.zeros(_BINS, np.int64)
+    he = np.zeros(_BINS, np.int64)
+    lpw = (  # the LPs' work arrays
+        np.empty((2 * k, 3)),
+        np.empty(2 * k),
+        np.empty(2 * k, np.int64),
+        np.empty((2 * k + 2, 2)),
+        np.empty(2 * k + 2),
+        np.zeros(k, np.bool_),
+        np.empty(3),
+        np.zeros(_LP_GAP, np.int64),
+        np.empty((_LP_GAP + 1, 4), np.int64),
+    )
     lo = np.zeros(k)
     hi = np.zeros(k)
     margin = np.zeros(k)
@@ -737,6 +1103,9 @@ def solve_exact(
                 pr,
                 bs,
                 bneg,
+                lpw,
+                hs,
+                he,
             )
         c = 0
         for q in range(m):

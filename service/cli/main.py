@@ -176,7 +176,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         from maxfs.storage.requests import job_params
 
     spec = JobSpec(ds.k, ds.height, ds.width, ds.channels, ds.dtype, ds.lights, ds.intensities).validate()
-    params = job_params(spec, _params(args), settings.task_memory)
+    params = job_params(spec, _params(args), settings.task_memory, ds.mask)
     print(f"{ds.name}: {ds.k} images of {ds.height} x {ds.width} ({ds.layout}, {ds.dtype})", file=sys.stderr)
     store, rec = run_folder(
         ds,
@@ -331,6 +331,15 @@ def cmd_warm(args: argparse.Namespace) -> int:
     load = load_kernels()
     how = "compiled and cached" if load.compiled else "loaded from the cache"
     print(f"solver kernels ready: {how} in {load.seconds:.1f} s")
+    # the depth step's kernels too (a few seconds to compile once after an install), for the normals'
+    # float32 as a run stores them
+    from maxfs.worker import depth_scenes
+    from maxfs.worker.depth import integrate
+
+    t = time.perf_counter()
+    scene = depth_scenes.sphere_ortho(16)
+    integrate(scene.normal, scene.mask, method="bini", max_iterations=2)
+    print(f"depth kernels ready in {time.perf_counter() - t:.1f} s")
     return 0
 
 

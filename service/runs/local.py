@@ -287,24 +287,33 @@ def finish(
 ) -> list[str]:
     """What a finished job gets besides its arrays: PNG previews, depth (see :mod:`service.results.research`),
     and the calibration checks (:func:`worker.task.check_calibration`; ``read_images`` as there).
-    Returns what those checks found suspect, for the record's ``calibration``."""
+    Returns what those checks found suspect, for the record's ``calibration``. The outputs are read
+    once, for all three (a chunk per tile each)."""
     from maxfs.service.results.research import finish_results
 
     tm = timings or Timings()
     with tm.phase("previews"):
-        write_previews(JobStore.open(out, mode="r"))
+        store = JobStore.open(out, mode="r")
+        arrays = preview_inputs(store)
+        write_previews(store, arrays)
     with tm.phase("depth and derived results"):
-        finish_results(out)
+        finish_results(out, normal=arrays["normal"])
     with tm.phase("calibration checks"):
-        return calibration_messages(out, read_images)
+        return calibration_messages(out, read_images, arrays)
 
 
-def calibration_messages(out: Path, read_images: Callable[[Tile], NDArray] | None = None) -> list[str]:
-    """The messages of the calibration checks that tripped on the finished job at ``out``."""
+def calibration_messages(
+    out: Path, read_images: Callable[[Tile], NDArray] | None = None, arrays: dict[str, NDArray] | None = None
+) -> list[str]:
+    """The messages of the calibration checks that tripped on the finished job at ``out``
+    (``arrays``: its ``normal`` and ``source`` outputs, if the caller has read them)."""
     from maxfs.worker.task import check_calibration  # imports the solver module: only once a job is done
 
+    got = arrays or {}
     try:
-        found = check_calibration(JobStore.open(out, mode="r"), read_images)
+        found = check_calibration(
+            JobStore.open(out, mode="r"), read_images, got.get("normal"), source=got.get("source")
+        )
     except Exception as e:  # the results stand; a user must still hear that nothing was checked
         log.exception("calibration checks of %s failed", out)
         return [f"the calibration checks could not run ({type(e).__name__}: {e})"]
@@ -397,11 +406,17 @@ def read_stack(ds: Dataset, store: JobStore, threads: int, reader: StackReader |
     return images
 
 
-def write_previews(store: JobStore) -> list[Path]:
-    """PNG previews under ``previews/`` in the job directory."""
+def preview_inputs(store: JobStore) -> dict[str, NDArray]:
+    """The outputs the previews are drawn from, by name (``normal`` and ``source`` among them)."""
+    return {n: store.read_output(n) for n in store.output_names() if n in PREVIEW_INPUTS}
+
+
+def write_previews(store: JobStore, arrays: dict[str, NDArray] | None = None) -> list[Path]:
+    """PNG previews under ``previews/`` in the job directory (``arrays``: :func:`preview_inputs`,
+    if the caller has read them)."""
     d = store.path / "previews"
     d.mkdir(exist_ok=True)
-    arrays = {n: store.read_output(n) for n in store.output_names() if n in PREVIEW_INPUTS}
+    arrays = preview_inputs(store) if arrays is None else arrays
     paths = []
     for name in PREVIEWS:
         p = d / f"{name}.png"
