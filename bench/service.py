@@ -33,7 +33,6 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-import httpx
 import numpy as np
 
 from maxfs.service.cli.client import MaxfsClient
@@ -43,7 +42,7 @@ from maxfs.storage.inputs import load_folder
 from maxfs.storage.params import JobParams
 from maxfs.worker import synthetic
 from maxfs.worker.solve import solve
-from tests.harness import Server, free_port
+from tests.harness import Server
 
 HERE = Path(sys.executable).parent
 CAT = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "diligent-crop8" / "catPNG"
@@ -151,40 +150,18 @@ def timed_cli(argv: list[str], env: dict[str, str] | None = None) -> float:
     return wall
 
 
-class Serve:
-    """``BIN/maxfs serve`` without auth on a free loopback port, until :meth:`stop`."""
-
-    def __init__(self, bin_dir: Path, data: Path, workers: int = 2) -> None:
-        self.url = f"http://127.0.0.1:{free_port()}"
-        port = self.url.rsplit(":", 1)[1]
-        data.parent.mkdir(parents=True, exist_ok=True)
-        self.log = open(data.parent / f"serve-{port}.log", "wb")
-        argv = [str(bin_dir / "maxfs"), "serve", "--port", port, "--data-dir", str(data)]
-        self.proc = subprocess.Popen(
-            [*argv, "--workers", str(workers), "--no-auth"],
-            stdout=self.log,
-            stderr=subprocess.STDOUT,
-        )
-        deadline = time.monotonic() + 180
-        while True:
-            try:
-                if httpx.get(f"{self.url}/health", timeout=2).status_code == 200:
-                    return
-            except httpx.HTTPError:
-                pass
-            if self.proc.poll() is not None or time.monotonic() > deadline:
-                self.stop()
-                raise RuntimeError(f"maxfs serve did not come up (see {self.log.name})")
-            time.sleep(0.3)
-
-    def stop(self) -> None:
-        self.proc.terminate()
-        try:
-            self.proc.wait(30)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-            self.proc.wait()
-        self.log.close()
+def serve(bin_dir: Path, root: Path, workers: int) -> Server:
+    """``BIN/maxfs serve`` without auth, its data and log in ``root``, progress saved at the
+    default interval (the test harness saves it ten times as often)."""
+    (root / "logs").mkdir(parents=True, exist_ok=True)
+    return Server(
+        root / "data",
+        "",
+        root / "logs",
+        workers=workers,
+        env={"MAXFS_PROGRESS_INTERVAL": "1"},
+        bin_dir=bin_dir,
+    )
 
 
 def versions(args: argparse.Namespace) -> dict[str, Path]:
@@ -200,7 +177,7 @@ def server_ratio(args: argparse.Namespace, tmp: Path) -> None:
     """A warm server's ``submit --wait`` + ``fetch`` against ``maxfs run`` on one folder."""
     folder = Path(args.folder).resolve()
     for label, bin_dir in versions(args).items():
-        srv = Serve(bin_dir, tmp / f"srv-{label}" / "data", workers=args.workers)
+        srv = serve(bin_dir, tmp / f"srv-{label}", args.workers)
         try:
             url = ["--server", srv.url]
 
@@ -280,9 +257,7 @@ def upload_rates(args: argparse.Namespace, tmp: Path) -> None:
     h, w, channels = images.shape[1], images.shape[2], (images.shape[3] if images.ndim == 4 else 1)
     lights = synthetic.lights_uniform(k).tolist()
     meta = dict(k=k, height=h, width=w, channels=channels, dtype=str(images.dtype), lights=lights, eps=5.0)
-    servers = {
-        label: Serve(b, tmp / f"up-{label}" / "data", workers=1) for label, b in versions(args).items()
-    }
+    servers = {label: serve(b, tmp / f"up-{label}", 1) for label, b in versions(args).items()}
     try:
 
         def send(url: str, raw: bool) -> float:
