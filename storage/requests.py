@@ -59,6 +59,12 @@ def resolve_tile(
     return edge
 
 
+def tile_is_auto(options: Mapping[str, Any]) -> bool:
+    """Whether ``options`` leave the tile edge to "auto" (given so, or not given)."""
+    tile = options.get("tile")
+    return str(DEFAULTS["tile"] if tile is None else tile) == "auto"
+
+
 def job_params(
     spec: JobSpec, options: Mapping[str, Any], task_memory: int, mask: NDArray[np.bool_] | None = None
 ) -> JobParams:

@@ -15,6 +15,7 @@ import threading
 import time
 from collections.abc import Callable, Iterable
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -51,6 +52,7 @@ def ingest(
     copy_images: bool = True,
     threads: int = 2,
     stop: threading.Event | None = None,
+    tile_auto: bool = False,
 ) -> tuple[JobStore, str]:
     """Create or reopen the output store for ``ds``; copy images not yet stored (into a
     new store only if ``copy_images``: :func:`run_folder` may keep them in memory and
@@ -60,7 +62,8 @@ def ingest(
     A store that already holds *other* inputs (images, mask, lights or intensities,
     compared by content digest) is refused unless ``overwrite``, which removes it and
     starts from scratch. Unchanged inputs are recognised from the files' fingerprint
-    (paths, sizes, times) without decoding them again. Returns the store and a note
+    (paths, sizes, times) without decoding them again. ``tile_auto``: the user left the tile
+    edge to "auto", so an existing store's own edge is accepted. Returns the store and a note
     for the user ("" when nothing notable happened).
     """
     out = Path(out)
@@ -79,6 +82,10 @@ def ingest(
         store = JobStore.open(out)
         _check_same_inputs(store, ds, spec, out, copy_images)
         old = store.params
+        if tile_auto:
+            # "auto" resumes on the grid the job began with: the rule may have changed since
+            # (or the mask's balance differs), and finished tiles are kept only on that grid
+            params = replace(params, tile=old.tile)
         comparable = old.unresolved() if params.eps is None else old
         if comparable != params:
             # never a quiet replacement: a sweep into one folder would keep only its last run
@@ -211,6 +218,7 @@ async def _ingest_and_run(
     on_note: Callable[[str], None] | None,
     on_progress: ProgressFn | None,
     tm: Timings,
+    tile_auto: bool = False,
 ) -> tuple[JobStore, JobRecord | None]:
     """:func:`run_folder` on a Dask cluster. With ``early`` (a fresh output: the job cannot be
     finished already) the cluster starts while the images are decoded and stored, its workers
@@ -229,7 +237,14 @@ async def _ingest_and_run(
         t0 = time.perf_counter()
         try:
             store, note = await asyncio.to_thread(
-                ingest, ds, out, params, overwrite=overwrite, threads=settings.workers, stop=stop
+                ingest,
+                ds,
+                out,
+                params,
+                overwrite=overwrite,
+                threads=settings.workers,
+                stop=stop,
+                tile_auto=tile_auto,
             )
         finally:
             stop.set()  # interrupted: the copy threads stop after the images they hold
@@ -334,6 +349,7 @@ def run_folder(
     on_progress: ProgressFn | None = None,
     timings: Timings | None = None,
     prefetch: StackReader | None = None,
+    tile_auto: bool = False,
 ) -> tuple[JobStore, JobRecord]:
     """``maxfs run``: ingest ``ds`` into ``out`` (or resume it) and solve every tile.
 
@@ -343,7 +359,8 @@ def run_folder(
     otherwise on a Dask cluster (:mod:`service.runs.cluster`): the embedded one, SLURM
     worker jobs, or ``scheduler``. A finished job is not run again: it costs a look at
     its done markers. Results are bit-identical either way. ``prefetch``: the stack, being
-    decoded since the folder was opened (used in process, cancelled otherwise).
+    decoded since the folder was opened (used in process, cancelled otherwise). ``tile_auto``:
+    as for :func:`ingest`.
     """
     out = Path(out)
     tm = timings or Timings()
@@ -364,11 +381,12 @@ def run_folder(
                     on_note=on_note,
                     on_progress=on_progress,
                     tm=tm,
+                    tile_auto=tile_auto,
                 )
             )
             return store, got if got is not None else load_record(out)
         with tm.phase("open or create the store"):
-            store, note = ingest(ds, out, params, overwrite=overwrite, copy_images=False)
+            store, note = ingest(ds, out, params, overwrite=overwrite, copy_images=False, tile_auto=tile_auto)
         if note and on_note:
             on_note(note)
         if store.done_grid().all() and (out / "previews").is_dir():
