@@ -6,15 +6,31 @@ the HTTP path (``maxfs serve`` with 2 embedded workers: upload, start, poll).
 Rates count masked-in pixels over the compute phase (job start to last tile;
 cluster start-up and upload are excluded and reported separately).
 
-Run: ``python -m bench.service`` (``--size``, ``--k``, ``--tile`` to change the job).
+Then, each with interleaved runs and min / median / max (``--runs``; ``--baseline REPO`` runs
+another checkout's ``REPO/.venv/bin/maxfs`` in turn with this one, for before/after figures):
+
+- ``server``: a warm ``maxfs serve`` (``maxfs submit --wait`` + ``maxfs fetch``) against
+  ``maxfs run`` on the same folder (``--folder``, default the DiLiGenT cat crop);
+- ``dask``: ``maxfs run`` on its Dask path (``MAXFS_IN_PROCESS_BYTES=0``) against the in-process
+  path on a 1-megapixel 16-bit job (:func:`bench.scale.write_stack`, ``--mp-k`` images);
+- ``upload``: HTTP upload MB/s of raw and of PNG bodies (16-bit 1000 x 1000 images).
+
+Run: ``python -m bench.service`` (``--only paths,server,dask,upload``; ``--size``, ``--k``,
+``--tile`` change the paths table's job).
 """
 
 from __future__ import annotations
 
 import argparse
+import os
+import resource
 import shutil
+import statistics
+import subprocess
+import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -28,15 +44,12 @@ from maxfs.worker import synthetic
 from maxfs.worker.solve import solve
 from tests.harness import Server
 
+HERE = Path(sys.executable).parent
+CAT = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "diligent-crop8" / "catPNG"
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--k", type=int, default=24)
-    ap.add_argument("--size", type=int, default=384)
-    ap.add_argument("--tile", type=int, default=64)
-    ap.add_argument("--eps", type=float, default=1.0)
-    args = ap.parse_args()
 
+def paths_table(args: argparse.Namespace) -> None:
+    """The throughput table of the module docstring."""
     tmp = Path(tempfile.mkdtemp(prefix="maxfs-bench-"))
     try:
         sc = synthetic.bump_scene(args.k, args.size)
@@ -102,6 +115,233 @@ def main() -> None:
     for name, w, rate, extra in rows:
         over = "-" if np.isnan(extra) else f"{extra:.1f}"
         print(f"| {name} | {w} | {rate:,.0f} | {rate / w / base:.2f}x | {rate / one:.2f}x | {over} |")
+
+
+def spread(xs: list[float]) -> str:
+    return f"{min(xs):.2f} / {statistics.median(xs):.2f} / {max(xs):.2f}"
+
+
+def interleaved(runs: int, cases: dict[str, Callable[[int], float]]) -> dict[str, list[float]]:
+    """Each case ``runs`` times, in turn (a, b, c, a, b, c, ...), so that the load of a shared
+    machine falls on all of them alike; every case returns the figure it measured."""
+    got: dict[str, list[float]] = {name: [] for name in cases}
+    for r in range(runs):
+        for name, case in cases.items():
+            got[name].append(case(r))
+    return got
+
+
+#: CPU seconds (user + system, the command and every process it waited for) of each
+#: :func:`timed_cli` call, in order: the Dask path's workers are the run's children.
+CPU: list[float] = []
+
+
+def timed_cli(argv: list[str], env: dict[str, str] | None = None) -> float:
+    """Wall seconds of one command (its CPU seconds appended to :data:`CPU`); raises with its
+    output when it fails."""
+    r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    t0 = time.perf_counter()
+    p = subprocess.run(argv, capture_output=True, text=True, env={**os.environ, **(env or {})})
+    wall = time.perf_counter() - t0
+    r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    CPU.append(r1.ru_utime + r1.ru_stime - r0.ru_utime - r0.ru_stime)
+    if p.returncode != 0:
+        raise RuntimeError(f"{' '.join(argv)} failed ({p.returncode}):\n{p.stdout}\n{p.stderr}")
+    return wall
+
+
+def serve(bin_dir: Path, root: Path, workers: int) -> Server:
+    """``BIN/maxfs serve`` without auth, its data and log in ``root``, progress saved at the
+    default interval (the test harness saves it ten times as often)."""
+    (root / "logs").mkdir(parents=True, exist_ok=True)
+    return Server(
+        root / "data",
+        "",
+        root / "logs",
+        workers=workers,
+        env={"MAXFS_PROGRESS_INTERVAL": "1"},
+        bin_dir=bin_dir,
+    )
+
+
+def versions(args: argparse.Namespace) -> dict[str, Path]:
+    """The ``bin`` folders to measure: this checkout's, and ``--baseline``'s before it."""
+    out = {}
+    if args.baseline:
+        out["before"] = Path(args.baseline).resolve() / ".venv" / "bin"
+    out["after" if args.baseline else "this"] = HERE
+    return out
+
+
+def server_ratio(args: argparse.Namespace, tmp: Path) -> None:
+    """A warm server's ``submit --wait`` + ``fetch`` against ``maxfs run`` on one folder."""
+    folder = Path(args.folder).resolve()
+    for label, bin_dir in versions(args).items():
+        srv = serve(bin_dir, tmp / f"srv-{label}", args.workers)
+        try:
+            url = ["--server", srv.url]
+
+            def local(r: int, b: Path = bin_dir, lab: str = label) -> float:
+                return timed_cli([str(b / "maxfs"), "run", str(folder), "-o", str(tmp / f"run-{lab}-{r}")])
+
+            def served(r: int, b: Path = bin_dir, lab: str = label, u: list[str] = url) -> float:
+                t0 = time.perf_counter()
+                maxfs = str(b / "maxfs")
+                sub = subprocess.run(
+                    [maxfs, "submit", str(folder), *u, "--name", f"bench-{r}", "--wait"],
+                    capture_output=True,
+                    text=True,
+                    check=True,
+                )
+                job = sub.stdout.strip().splitlines()[0]
+                out = tmp / f"fetch-{lab}-{r}"
+                subprocess.run([maxfs, "fetch", job, *u, "-o", str(out)], capture_output=True, check=True)
+                wall = time.perf_counter() - t0
+                subprocess.run([maxfs, "delete", job, *u], capture_output=True, check=True)
+                return wall
+
+            got = interleaved(args.runs, {"maxfs run": local, "server": served})
+        finally:
+            srv.stop()
+        ratios = [s / r for s, r in zip(got["server"], got["maxfs run"], strict=True)]
+        print(
+            f"| {label} | {spread(got['maxfs run'])} | {spread(got['server'])} | {spread(ratios)} |",
+            flush=True,
+        )
+
+
+def dask_ratio(args: argparse.Namespace, tmp: Path) -> None:
+    """``maxfs run`` on the Dask path against the in-process path, one 1-megapixel job."""
+    from bench.scale import write_stack
+
+    folder = write_stack(tmp / "mp", args.mp_k, 1000)
+    cases: dict[str, Callable[[int], float]] = {}
+    cpu: dict[str, list[float]] = {}
+    for label, bin_dir in versions(args).items():
+        for path, env in (("in-process", {}), ("Dask", {"MAXFS_IN_PROCESS_BYTES": "0"})):
+            name = f"{label} {path}"
+            cpu[name] = []
+
+            def case(r: int, b: Path = bin_dir, e: dict = env, name: str = name) -> float:
+                wall = timed_cli([str(b / "maxfs"), "run", str(folder), "-o", str(tmp / f"{name}-{r}")], e)
+                cpu[name].append(CPU[-1])
+                return wall
+
+            cases[name] = case
+    got = interleaved(args.runs, cases)
+    for label in versions(args):
+        a, b = got[f"{label} in-process"], got[f"{label} Dask"]
+        ratios = [y / x for x, y in zip(a, b, strict=True)]
+        ca, cb = cpu[f"{label} in-process"], cpu[f"{label} Dask"]
+        print(
+            f"| {label} | {spread(a)} | {spread(b)} | {spread(ratios)} | "
+            f"{statistics.median(cb) / statistics.median(ca):.2f} |",
+            flush=True,
+        )
+
+
+def upload_rates(args: argparse.Namespace, tmp: Path) -> None:
+    """MB/s of image uploads, raw little-endian and PNG, to a server of each version."""
+    import imagecodecs
+
+    from bench.scale import write_stack
+
+    if args.upload_folder:  # the folder's first images, as decoded (PNG bodies re-encoded)
+        ds = load_folder(args.upload_folder)
+        k = min(args.upload_k, ds.k)
+        images = np.stack([ds.read(i) for i in range(k)])
+    else:
+        k = args.upload_k
+        images = np.load(write_stack(tmp / "up", k, 1000) / "images.npy")
+    pngs = [bytes(imagecodecs.png_encode(im)) for im in images]
+    h, w, channels = images.shape[1], images.shape[2], (images.shape[3] if images.ndim == 4 else 1)
+    lights = synthetic.lights_uniform(k).tolist()
+    meta = dict(k=k, height=h, width=w, channels=channels, dtype=str(images.dtype), lights=lights, eps=5.0)
+    servers = {label: serve(b, tmp / f"up-{label}", 1) for label, b in versions(args).items()}
+    try:
+
+        def send(url: str, raw: bool) -> float:
+            with MaxfsClient(url) as c:
+                job = c.create_job(**meta)["id"]
+                t0 = time.perf_counter()
+                for i in range(k):
+                    if raw:
+                        c.upload_image(job, i, images[i])
+                    else:
+                        r = c.http.put(
+                            f"/jobs/{job}/images/{i}", content=pngs[i], headers={"Content-Type": "image/png"}
+                        )
+                        assert r.status_code == 200, r.text
+                wall = time.perf_counter() - t0
+                c.delete(job)
+            return (images.nbytes if raw else sum(map(len, pngs))) / 2**20 / wall
+
+        cases: dict[str, Callable[[int], float]] = {}
+        for label, srv in servers.items():
+            cases[f"{label} raw"] = lambda r, u=srv.url: send(u, True)
+            cases[f"{label} png"] = lambda r, u=srv.url: send(u, False)
+        got = interleaved(args.runs, cases)
+    finally:
+        for srv in servers.values():
+            srv.stop()
+    ratio = images.nbytes / sum(map(len, pngs))
+    for label in servers:
+        print(
+            f"| {label} | {spread(got[f'{label} raw'])} | {spread(got[f'{label} png'])} | {ratio:.2f} |",
+            flush=True,
+        )
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--only", default="paths,server,dask,upload", help="sections, comma-separated")
+    ap.add_argument("--k", type=int, default=24)
+    ap.add_argument("--size", type=int, default=384)
+    ap.add_argument("--tile", type=int, default=64)
+    ap.add_argument("--eps", type=float, default=1.0)
+    ap.add_argument("--runs", type=int, default=3, help="interleaved runs of each case")
+    ap.add_argument("--baseline", default="", help="another checkout (with .venv) to measure in turn")
+    ap.add_argument("--folder", default=str(CAT), help="the folder of the server section")
+    ap.add_argument("--workers", type=int, default=2, help="the server section's workers")
+    ap.add_argument("--mp-k", type=int, default=16, help="images of the 1-megapixel Dask-path job")
+    ap.add_argument("--upload-k", type=int, default=8, help="images per upload run")
+    ap.add_argument(
+        "--upload-folder", default="", help="upload this folder's images (default: 1000^2 uint16)"
+    )
+    args = ap.parse_args()
+    only = set(args.only.split(","))
+    if "paths" in only:
+        paths_table(args)
+    tmp = Path(tempfile.mkdtemp(prefix="maxfs-bench-"))
+    try:
+        if "server" in only:
+            print(
+                f"\nwarm server (`maxfs submit --wait` + `maxfs fetch`) vs `maxfs run` on {args.folder}; "
+                f"wall s, min / median / max of {args.runs} interleaved runs\n"
+            )
+            print("| version | maxfs run s | server s | server / run |\n|---|---|---|---|", flush=True)
+            server_ratio(args, tmp)
+        if "dask" in only:
+            print(
+                f"\n`maxfs run`, 1000 x 1000 x {args.mp_k} uint16: Dask path (MAXFS_IN_PROCESS_BYTES=0) vs "
+                f"in-process; wall s, min / median / max of {args.runs} interleaved runs\n"
+            )
+            print(
+                "| version | in-process s | Dask s | Dask / in-process | CPU, medians: Dask / in-process |\n"
+                "|---|---|---|---|---|",
+                flush=True,
+            )
+            dask_ratio(args, tmp)
+        if "upload" in only:
+            what = args.upload_folder or "1000 x 1000 uint16"
+            print(
+                f"\nHTTP upload of {args.upload_k} images of {what} (one user, one at a time); "
+                f"MB/s of request body, min / median / max of {args.runs} interleaved runs\n"
+            )
+            print("| version | raw MB/s | PNG MB/s | raw / PNG bytes |\n|---|---|---|---|", flush=True)
+            upload_rates(args, tmp)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
 
 
 if __name__ == "__main__":

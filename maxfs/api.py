@@ -235,11 +235,11 @@ def _run(
     from maxfs.service.settings import Settings
     from maxfs.storage.layout import JobSpec
     from maxfs.storage.records import JobState
-    from maxfs.storage.requests import job_params
+    from maxfs.storage.requests import job_params, tile_is_auto
 
     settings = Settings()
     spec = JobSpec(ds.k, ds.height, ds.width, ds.channels, ds.dtype, ds.lights, ds.intensities).validate()
-    params = job_params(spec, options, settings.task_memory)
+    params = job_params(spec, options, settings.task_memory, ds.mask)
     temp = output is None
     out = Path(tempfile.mkdtemp(prefix="maxfs-")) / "result" if temp else Path(output)  # type: ignore[arg-type]
     try:
@@ -250,6 +250,7 @@ def _run(
             overwrite=overwrite,
             workers=workers or settings.workers,
             in_process_bytes=settings.in_process_bytes,  # larger stacks: the embedded cluster, as maxfs run
+            tile_auto=tile_is_auto(options),
         )
         if rec.state is not JobState.DONE:
             raise MaxfsError(f"the job ended {rec.state.value}: {rec.error or 'no reason recorded'}")

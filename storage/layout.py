@@ -9,7 +9,7 @@ edge, chunks are tile-aligned)::
 
     lights        (k, 3)          float64
     intensities   (k, C|1)        float64
-    mask          (H, W)          bool                  chunks (T, T)
+    mask          (H, W)          bool                  chunks (T, W): bands of tile rows
     normal        (H, W, 3)       float32 (NaN fill)    chunks (T, T, 3)
     albedo        (H, W)          float32
     albedo_rgb    (H, W, C)       float32               colour input only
@@ -46,12 +46,15 @@ combines them with the lights and intensities: a store reused for other inputs i
 A tile task writes whole chunks of the outputs and its pixel counts, then ``done[ty, tx] =
 params.token()`` last. A tile counts as finished only if its marker equals the
 token of the *current* parameters, so a job re-run with other parameters never
-reuses stale tiles. The store is created once, by the service or CLI, with mode
+reuses stale tiles. A tile without masked pixels needs no marker: its outputs are fill values
+whatever the parameters, so it counts as done once the job has parameters
+(:meth:`JobStore.done_grid`). The store is created once, by the service or CLI, with mode
 ``w-``; everything after opens it ``r+``.
 """
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import hashlib
 import json
@@ -66,6 +69,8 @@ from typing import Any
 import numpy as np
 import zarr
 from numpy.typing import NDArray
+from zarr.codecs import ZstdCodec
+from zarr.core.sync import sync
 
 from maxfs.storage.digests import DIGEST_BYTES, ArrayHasher, array_digest
 from maxfs.storage.errors import ConflictError, InvalidInputError, NotFoundError, StoreError
@@ -79,7 +84,8 @@ from maxfs.storage.outputs import (
     output_bytes_per_pixel,
 )
 from maxfs.storage.params import JobParams
-from maxfs.storage.tiles import Tile, auto_tile, grid_shape, tile_memory, tiles
+from maxfs.storage.shards import ShardWriter
+from maxfs.storage.tiles import Tile, auto_tile, grid_shape, masked_per_tile, tile_memory, tiles
 
 
 def lights_digest(spec: JobSpec) -> str:
@@ -91,8 +97,8 @@ def lights_digest(spec: JobSpec) -> str:
 class ProgressCounts:
     """What the finished tiles hold (from the small per-tile arrays, never the outputs)."""
 
-    tiles_done: int
-    tiles_total: int
+    tiles_done: int  # finished tiles among those of tiles_total
+    tiles_total: int  # tiles that hold masked pixels: the tiles with work (every tile without a mask)
     pixels_done: int  # masked pixels in finished tiles
     pixels_total: int  # masked pixels of the job
     solved: int  # masked pixels in finished tiles that got a normal
@@ -223,15 +229,17 @@ class JobSpec:
         """Upper bound of the job's size on disk (images and outputs, uncompressed)."""
         return self.k * self.image_nbytes + self.pixels * output_bytes_per_pixel(self.k, self.channels)
 
-    def auto_tile(self, memory: int, solver: str = "exact") -> int:
-        """Tile edge for this stack, a per-task memory budget and a solver (see
-        :func:`storage.tiles.auto_tile`)."""
-        return auto_tile(self.k, self.channels, self.itemsize, memory, self.pixels, solver)
+    def auto_tile(self, memory: int, solver: str = "exact", mask: NDArray[np.bool_] | None = None) -> int:
+        """Tile edge for this stack, a per-task memory budget, a solver and, where it is known
+        when the job is made, the mask (see :func:`storage.tiles.auto_tile`)."""
+        return auto_tile(self.k, self.channels, self.itemsize, memory, self.pixels, solver, mask)
 
-    def resolve_tile(self, tile: int | str, memory: int, solver: str = "exact") -> int:
+    def resolve_tile(
+        self, tile: int | str, memory: int, solver: str = "exact", mask: NDArray[np.bool_] | None = None
+    ) -> int:
         """``"auto"`` to :meth:`auto_tile`; a tile edge given by hand must fit ``memory``."""
         if tile == "auto":
-            return self.auto_tile(memory, solver)
+            return self.auto_tile(memory, solver, mask)
         self.check_tile(int(tile), memory)
         return int(tile)
 
@@ -270,6 +278,8 @@ class JobStore:
         self.path = Path(path)
         self.group = group
         self._arrays: dict[str, zarr.Array] = {}
+        self._writer: tuple[ShardWriter | None] | None = None  # (writer,) once looked up
+        self._counts: tuple[tuple[bytes, int], NDArray[np.int64]] | None = None
         attrs = dict(group.attrs)
         if attrs.get("maxfs_format") != FORMAT_VERSION:
             fmt = attrs.get("maxfs_format")
@@ -329,6 +339,8 @@ class JobStore:
             shape=(k, *spec.image_shape),
             chunks=img_chunks,
             shards=img_shards,
+            # zstd level 1: twice the speed of the default level for 1-10 % more bytes
+            compressors=ZstdCodec(level=1),
             dtype=spec.dtype,
             fill_value=0,
             dimension_names=DIMS["images"] + (("channel",) if C is not None else ()),
@@ -356,7 +368,10 @@ class JobStore:
             if o.made == "after" or not o.exists(C):
                 continue  # depth is made after the run (service.results.research); albedo_rgb needs colour
             shape = o.shape(k, H, W, C)
-            chunks = tuple({"y": tc[0], "x": tc[1]}.get(d, n) for d, n in zip(o.dims, shape, strict=True))
+            # the mask in bands of tile rows: written once, read whole by every counting of the
+            # tiles' pixels, where one chunk per tile cost a file per tile
+            tx = W if o.made == "input" else tc[1]
+            chunks = tuple({"y": tc[0], "x": tx}.get(d, n) for d, n in zip(o.dims, shape, strict=True))
             g.create_array(
                 o.name,
                 shape=shape,
@@ -461,7 +476,15 @@ class JobStore:
     @property
     def band_rows(self) -> int:
         """Rows of one image shard: the unit an upload writes."""
-        return int(self._array("images").shards[1])
+        return int(self._fixed("images").shards[1])
+
+    def _shard_writer(self) -> ShardWriter | None:
+        """The fast writer of whole image shards (:mod:`storage.shards`), made once; None for a
+        store whose image codecs it does not encode."""
+        if self._writer is None:
+            folder = self.path / GROUP_DIR / PATHS["images"]
+            self._writer = (ShardWriter.for_array(folder, self._fixed("images")),)
+        return self._writer[0]
 
     def check_image(self, i: int, image: NDArray[Any]) -> None:
         """Refuse an image whose index, shape or dtype does not fit the job."""
@@ -485,17 +508,23 @@ class JobStore:
         """Store image ``i`` from consecutive bands of :attr:`band_rows` rows (the last may be
         shorter). ``uploaded[i]`` is False while the bands are written."""
         self.check_index(i)
-        images, y = self._array("images"), 0
-        self._array("uploaded")[i] = False
+        images, y = self._fixed("images"), 0
+        writer, rows, H = self._shard_writer(), self.band_rows, self.spec.height
+        self._fixed("uploaded")[i] = False
         h = ArrayHasher(self.spec.image_shape, self.spec.dtype)
         for band in bands:
-            images[i, y : y + band.shape[0]] = band
+            n = band.shape[0]
+            if writer is not None and y % rows == 0 and (n == rows or y + n == H):
+                # a whole shard: encoded in one pass (storage.shards), not chunk by chunk
+                writer.write((i, y // rows, *(0,) * (band.ndim - 1)), band[None])
+            else:
+                images[i, y : y + n] = band
             h.update(band)
-            y += band.shape[0]
+            y += n
         if y != self.spec.height:
             raise InvalidInputError(f"image {i}: got {y} rows, the job expects {self.spec.height}")
-        self._array("input_digests")[i] = np.frombuffer(h.digest(), np.uint8)
-        self._array("uploaded")[i] = True
+        self._fixed("input_digests")[i] = np.frombuffer(h.digest(), np.uint8)
+        self._fixed("uploaded")[i] = True
 
     def uploaded(self) -> NDArray[np.bool_]:
         return np.asarray(self._array("uploaded")[...])
@@ -582,11 +611,22 @@ class JobStore:
         return list(tiles(s.height, s.width, self.params.tile))
 
     def done_grid(self) -> NDArray[np.bool_]:
-        """Which tiles are finished with the current parameters."""
+        """Which tiles are finished with the current parameters: those whose marker is the
+        parameters' token, and, once the job has parameters, every tile without a masked pixel
+        (:meth:`masked_per_tile`): its outputs are fill values whatever the parameters, as only
+        :meth:`write_empty_tile` ever writes there, so it needs no marker and no task. Reads the
+        markers of the other tiles only (a chunk each)."""
         p = self.params
+        arr = self._array("done")
         if p.eps is None:
-            return np.zeros(np.asarray(self._array("done").shape), dtype=bool)
-        return np.asarray(self._array("done")[...]) == p.token()
+            return np.zeros(np.asarray(arr.shape), dtype=bool)
+        done = self.masked_per_tile() == 0
+        ys, xs = np.nonzero(~done)
+        if ys.size == done.size:
+            return np.asarray(arr[...]) == p.token()
+        if ys.size:
+            done[ys, xs] = np.asarray(arr.vindex[ys, xs]) == p.token()
+        return done
 
     def read_tile(self, t: Tile) -> tuple[NDArray[Any], NDArray[np.bool_]]:
         """Raw images ``(k, h, w[, C])`` and mask ``(h, w)`` of one tile."""
@@ -601,6 +641,17 @@ class JobStore:
     def write_empty_tile(self, t: Tile, token: int) -> None:
         """A tile with no masked pixel: every output at its fill value, zero stats, done marker."""
         self._write_outputs(t, {}, token, (0, 0, 0))
+
+    def masked_per_tile(self) -> NDArray[np.int64]:
+        """Masked pixels of each tile, on the tile grid ``(ny, nx)``; counted once per mask (this
+        store object keeps the counts with the mask's digest, which a new mask changes)."""
+        key = (bytes(np.asarray(self._array("input_digests")[self.spec.k])), self.params.tile)
+        if self._counts is not None and self._counts[0] == key:
+            return self._counts[1].copy()
+        counts = masked_per_tile(self.read_mask(), self.params.tile)
+        if key[0] != MASK_WRITING:
+            self._counts = (key, counts)
+        return counts.copy()
 
     def write_tile(
         self, t: Tile, arrays: Mapping[str, NDArray[Any]], token: int, stats: tuple[int, int, int]
@@ -617,16 +668,20 @@ class JobStore:
         self, t: Tile, arrays: Mapping[str, NDArray[Any]], token: int, stats: tuple[int, int, int]
     ) -> None:
         ys, xs = slice(t.y0, t.y1), slice(t.x0, t.x1)
+        writes = []
         for o in TILE_OUTPUTS:
             if not o.exists(self.spec.channels):
                 continue
             a = self._fixed(o.name)
             value = arrays.get(o.name, a.fill_value)
-            if o.per == "image":
-                a[:, ys, xs] = value
-            else:
-                a[ys, xs] = value
-        self._fixed("tile_stats")[t.ty, t.tx] = np.asarray(stats, dtype=np.int64)
+            writes.append(
+                a.async_array.setitem((slice(None), ys, xs) if o.per == "image" else (ys, xs), value)
+            )
+        stats_row = np.asarray(stats, dtype=np.int64)
+        writes.append(self._fixed("tile_stats").async_array.setitem((t.ty, t.tx), stats_row))
+        # every chunk of the tile in one pass of Zarr's event loop (one at a time, each write
+        # waited for the loop's round trip), then the done marker, only once they are all on disk
+        sync(_gather(writes))
         self._fixed("done")[t.ty, t.tx] = token
 
     def tile_done(self, t: Tile) -> bool:
@@ -636,29 +691,53 @@ class JobStore:
 
     def progress(self) -> ProgressCounts:
         """Counts over the finished tiles, from the done grid and per-tile stats only."""
-        done = self.done_grid()
-        stats = np.asarray(self._array("tile_stats")[...])[done]
+        counts = self.masked_per_tile()
+        done = self.done_grid() & (counts > 0)
+        # the stats of finished tiles with masked pixels (the others' are zeros): a chunk each
+        ys, xs = np.nonzero(done)
+        cols = np.arange(3)
+        flat = self._array("tile_stats").vindex[np.repeat(ys, 3), np.repeat(xs, 3), np.tile(cols, ys.size)]
+        stats = np.asarray(flat, dtype=np.int64).reshape(-1, 3)
         return ProgressCounts(
             tiles_done=int(done.sum()),
-            tiles_total=int(done.size),
+            tiles_total=int(np.count_nonzero(counts)),
             pixels_done=int(stats[:, 0].sum()),
-            pixels_total=int(self.read_mask().sum()),
+            pixels_total=int(counts.sum()),
             solved=int(stats[:, 1].sum()),
             certified=int(stats[:, 2].sum()),
         )
 
-    def by_masked_pixels(self, todo: Iterable[Tile]) -> list[Tile]:
+    def by_masked_pixels(self, todo: Iterable[Tile], counts: NDArray[np.int64] | None = None) -> list[Tile]:
         """``todo`` by masked pixels, most first (ties in raster order): the work a tile costs,
-        so the largest tiles start first and the last ones to finish are small."""
-        mask = self.read_mask()
-        todo = list(todo)
-        count = {t.index: int(mask[t.y0 : t.y1, t.x0 : t.x1].sum()) for t in todo}
-        return sorted(todo, key=lambda t: (-count[t.index], t.index))
+        so the largest tiles start first and the last ones to finish are small (``counts``:
+        :meth:`masked_per_tile`, if the caller has it)."""
+        counts = self.masked_per_tile() if counts is None else counts
+        return sorted(todo, key=lambda t: (-int(counts[t.ty, t.tx]), t.index))
 
     def read_output(self, name: str) -> NDArray[Any]:
+        """Output ``name`` whole. A tile output is read only over the tiles that hold masked pixels
+        (their bounding box): the others hold its fill value, and each of their chunks would cost
+        a look-up (most of the frame, for an object in balanced small tiles)."""
         if name not in OUTPUTS_BY_NAME or name not in self.group:
             raise NotFoundError(f"no output array {name!r}; available: {', '.join(self.output_names())}")
-        return np.asarray(self.group[name][...])
+        a = self.group[name]
+        o = OUTPUTS_BY_NAME[name]
+        if o.made != "tile":
+            return np.asarray(a[...])
+        ty, tx = np.nonzero(self.masked_per_tile())
+        if ty.size == 0:
+            return np.asarray(a[...])
+        T, (H, W) = self.params.tile, (self.spec.height, self.spec.width)
+        box = {
+            "y": slice(int(ty.min()) * T, min((int(ty.max()) + 1) * T, H)),
+            "x": slice(int(tx.min()) * T, min((int(tx.max()) + 1) * T, W)),
+        }
+        region = tuple(box.get(d, slice(0, n)) for d, n in zip(o.dims, a.shape, strict=True))
+        if all(r == slice(0, n) for r, n in zip(region, a.shape, strict=True)):
+            return np.asarray(a[...])
+        out = np.full(a.shape, a.fill_value, dtype=a.dtype)
+        out[region] = a[region]
+        return out
 
     def output_names(self) -> list[str]:
         return [n for n in OUTPUT_NAMES if n in self.group]
@@ -777,6 +856,10 @@ class JobStore:
         )
         arr[...] = depth
         arr.update_attributes(attrs)
+
+
+async def _gather(writes: list[Any]) -> None:
+    await asyncio.gather(*writes)
 
 
 def _coordinates(g: zarr.Group, k: int, channels: int | None) -> None:

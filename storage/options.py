@@ -310,7 +310,12 @@ SOLVE_OPTIONS: tuple[Option, ...] = (
         "exact",
         tuple(s.value for s in Solver),
     ),
-    Option("tile", "int|auto", "tile edge in pixels (8-4096), or auto: from k and the task memory", "auto"),
+    Option(
+        "tile",
+        "int|auto",
+        "tile edge in pixels (8-4096), or auto: from k, the task memory and (maxfs run) the mask",
+        "auto",
+    ),
     Option("shadow", "float", "intensities <= this are shadows (default: the model's, eps or eps/3)"),
     Option(
         "saturation",

@@ -102,7 +102,7 @@ class JobRecord:
     started_at: float | None = None
     finished_at: float | None = None
     error: str | None = None
-    tiles_total: int = 0
+    tiles_total: int = 0  # tiles that hold masked pixels (the others have no work and are done)
     tiles_done: int = 0
     pixels_total: int = 0  # pixels inside the mask
     pixels_done: int = 0  # ... in finished tiles

@@ -12,6 +12,9 @@ import difflib
 from collections.abc import Mapping
 from typing import Any
 
+import numpy as np
+from numpy.typing import NDArray
+
 from maxfs.storage.errors import InvalidInputError
 from maxfs.storage.layout import JobSpec
 from maxfs.storage.options import SOLVE_OPTIONS
@@ -33,12 +36,16 @@ def check_names(options: Mapping[str, Any]) -> None:
             raise InvalidInputError(f"unknown option {name!r}{hint} (options: {', '.join(OPTION_NAMES)})")
 
 
-def resolve_tile(spec: JobSpec, tile: int | str, solver: str, task_memory: int) -> int:
+def resolve_tile(
+    spec: JobSpec, tile: int | str, solver: str, task_memory: int, mask: NDArray[np.bool_] | None = None
+) -> int:
     """The tile edge of a new job: "auto", or one given by hand, which must fit the task memory
     (:meth:`JobSpec.check_tile`) and the work per task that "auto" keeps to:
     ``tile**2 * k * WORK_COST[solver]`` at most :data:`storage.tiles.WORK_PER_TILE` (the MILP's
-    cost is 16: about a hundred times slower per pixel), so one task lasts seconds."""
-    edge = spec.resolve_tile(tile, task_memory, solver)
+    cost is 16: about a hundred times slower per pixel), so one task lasts seconds. ``mask``: the
+    job's mask where it is known before the job is made (a local run, not an HTTP submit, whose
+    mask comes after): "auto" then also balances the masked pixels over the tiles."""
+    edge = spec.resolve_tile(tile, task_memory, solver, mask)
     if tile != "auto":
         cost = WORK_COST.get(str(solver), 1)
         work = edge * edge * spec.k * cost
@@ -52,9 +59,18 @@ def resolve_tile(spec: JobSpec, tile: int | str, solver: str, task_memory: int) 
     return edge
 
 
-def job_params(spec: JobSpec, options: Mapping[str, Any], task_memory: int) -> JobParams:
-    """Validated parameters of a job on ``spec`` from the options a user gave (None = unset)."""
+def tile_is_auto(options: Mapping[str, Any]) -> bool:
+    """Whether ``options`` leave the tile edge to "auto" (given so, or not given)."""
+    tile = options.get("tile")
+    return str(DEFAULTS["tile"] if tile is None else tile) == "auto"
+
+
+def job_params(
+    spec: JobSpec, options: Mapping[str, Any], task_memory: int, mask: NDArray[np.bool_] | None = None
+) -> JobParams:
+    """Validated parameters of a job on ``spec`` from the options a user gave (None = unset);
+    ``mask`` as for :func:`resolve_tile`."""
     check_names(options)
     opts = DEFAULTS | {k: v for k, v in options.items() if v is not None}
-    tile = resolve_tile(spec, opts["tile"], str(opts["solver"]), task_memory)
+    tile = resolve_tile(spec, opts["tile"], str(opts["solver"]), task_memory, mask)
     return JobParams.build(**opts | {"tile": tile})

@@ -155,9 +155,11 @@ class Server:
         workers: int = 1,
         auth: bool = False,
         env: dict[str, str] | None = None,
+        bin_dir: Path = BIN,
     ) -> None:
         """``scheduler=""`` starts the server's embedded cluster with ``workers`` processes;
-        ``env`` sets more ``MAXFS_*`` settings."""
+        ``env`` sets more ``MAXFS_*`` settings; ``bin_dir`` holds the ``maxfs`` to run (another
+        checkout's, for a benchmark's before and after)."""
         self.port = port or free_port()
         self.url = f"http://127.0.0.1:{self.port}"
         self.data = Path(data_dir)
@@ -166,7 +168,7 @@ class Server:
         if not auth:
             extra.append("--no-auth")
         self.proc = _spawn(
-            [str(BIN / "maxfs"), "serve", "--port", str(self.port), "--data-dir", str(data_dir), *extra],
+            [str(bin_dir / "maxfs"), "serve", "--port", str(self.port), "--data-dir", str(data_dir), *extra],
             self.log,
             env={"MAXFS_PROGRESS_INTERVAL": "0.1", **(env or {})},
         )

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import re
 import subprocess
 import sys
@@ -129,3 +130,22 @@ def test_token_create_list_revoke(tmp_path: Path) -> None:
     assert (tmp_path / "data" / "maxfs-tokens.json").stat().st_mode & 0o077 == 0
     assert _maxfs("token", "revoke", "alice", "--data-dir", d).returncode == 0
     assert store.authenticate(token) is None
+
+
+def test_the_command_keeps_blas_to_one_thread_unless_the_user_set_it() -> None:
+    from maxfs.service.cli.entry import one_blas_thread
+
+    env = {"OPENBLAS_NUM_THREADS": "4", "PATH": "/bin"}
+    one_blas_thread(env)
+    assert env == {
+        "OPENBLAS_NUM_THREADS": "4",
+        "PATH": "/bin",
+        "OMP_NUM_THREADS": "1",
+        "MKL_NUM_THREADS": "1",
+    }
+    # BLAS reads the count once, when numpy loads it: the entry point must set it before any numpy import
+    probe = "import sys, maxfs.service.cli.entry as e; e.one_blas_thread(); print('numpy' in sys.modules)"
+    out = subprocess.run(
+        [sys.executable, "-c", probe], capture_output=True, text=True, env=dict(os.environ), timeout=60
+    )
+    assert out.stdout.strip() == "False", out.stderr

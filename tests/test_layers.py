@@ -184,6 +184,8 @@ def test_no_test_module_imports_another() -> None:
         ("maxfs.storage.options", {"numba", "highspy", "zarr", "maxfs.worker", "maxfs.service"}),
         ("maxfs.storage.outputs", {"numba", "highspy", "zarr", "maxfs.worker", "maxfs.service"}),
         ("maxfs.worker.task", {"maxfs.service", "fastapi", "uvicorn", "starlette"}),
+        # the in-process runner of `maxfs run --solver l2`: numba only once the exact solver runs
+        ("maxfs.service.runs.inprocess", {"numba", "highspy", "distributed", "fastapi", "scipy"}),
         ("maxfs", {"numba", "distributed", "fastapi", "uvicorn", "highspy"}),
     ],
 )

@@ -218,6 +218,30 @@ def test_other_parameters_into_an_existing_output_are_refused_and_nothing_is_los
     assert store.params.eps == 2.0
 
 
+def test_auto_tile_resumes_on_the_grid_the_job_began_with(tmp_path: Path) -> None:
+    """A job begun with another edge (by hand, or by an earlier auto rule) resumes under "auto";
+    an edge given by hand that differs is still refused."""
+    import numpy as np
+
+    from maxfs.service.runs.local import ingest
+    from maxfs.storage.datasets import write_npy_folder
+    from maxfs.storage.errors import ConflictError
+    from maxfs.storage.inputs import load_folder
+    from maxfs.storage.params import JobParams
+    from maxfs.storage.requests import tile_is_auto
+    from maxfs.worker import synthetic
+
+    assert tile_is_auto({}) and tile_is_auto({"tile": "auto"}) and not tile_is_auto({"tile": 32})
+    sc = synthetic.bump_scene(6, 48, seed=2)
+    ds = load_folder(write_npy_folder(tmp_path / "in", sc.images.astype(np.uint8), sc.lights, sc.mask))
+    out = tmp_path / "out"
+    ingest(ds, out, JobParams.build(eps=1.0, tile=48))
+    store, note = ingest(ds, out, JobParams.build(eps=1.0, tile=32), tile_auto=True)
+    assert store.params.tile == 48 and note.startswith("resuming")
+    with pytest.raises(ConflictError, match="tile 48 -> 32"):
+        ingest(ds, out, JobParams.build(eps=1.0, tile=32))
+
+
 # --- the command line ---------------------------------------------------------------------------------
 def _help(*argv: str, capsys) -> str:
     from maxfs.service.cli.main import main

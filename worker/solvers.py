@@ -16,7 +16,6 @@ from numpy.typing import NDArray
 
 from maxfs.storage.options import Solver
 from maxfs.storage.outputs import Source
-from maxfs.worker.exact import exact_pixels
 from maxfs.worker.lstsq import refit
 from maxfs.worker.milp import MilpSolver
 from maxfs.worker.outliers import first_pass, near_mirror
@@ -79,6 +78,8 @@ RowSearch = Callable[
 
 
 def _exact_rows(S, lo, hi, valid, L, b: Batch):
+    from maxfs.worker.exact import exact_pixels  # numba: only for the exact solver, not l2 or milp
+
     pt, il, _, nd, cert = exact_pixels(S, lo, hi, valid, L, b.th.box_factor, b.max_nodes)
     redo = np.flatnonzero(~cert)
     if redo.size:  # budget exhausted: the MILP decides

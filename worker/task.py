@@ -245,11 +245,14 @@ def check_calibration(
     store: JobStore,
     read_images: Callable[[Tile], NDArray] | None = None,
     normal: NDArray | None = None,
+    *,
+    source: NDArray | None = None,
 ) -> list[calibration.Finding]:
     """Every calibration check (:mod:`worker.calibration`) on a finished job: the lights alone, the
     lights against the data on the fixed sample of the eps estimate (``read_images`` as for
     :func:`compute_tile`), the solved ``normal`` (read from the store when not given) and, without
-    a mask, the share of background pixels."""
+    a mask, the share of background pixels (``normal`` and ``source``: the outputs, read from the
+    store when not given)."""
     spec = store.spec
     read = read_images or store.read_tile_images
     obs = store.observation_model
@@ -263,7 +266,7 @@ def check_calibration(
         if not has_mask:
             out.append(calibration.no_mask(grey.max(axis=1), _dark_level(grey, obs.step)))
     n = store.read_output("normal") if normal is None else normal
-    src = store.read_output("source")
+    src = store.read_output("source") if source is None else source
     out += [calibration.normals_facing(n, src), calibration.flip_integrability(n)]
     return out
 

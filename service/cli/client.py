@@ -10,6 +10,7 @@ import tempfile
 import time
 import zipfile
 from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -225,7 +226,8 @@ class MaxfsClient:
         images), stream its images one by one, start it. ``name`` (default: the folder's name) is
         how the job is shown; ``on_upload(sent, k)`` is called after each image.
 
-        Only one decoded image is in memory at a time (NPY stacks are read one image at a time).
+        At most two decoded images are in memory at a time, the one being sent and the next
+        (NPY stacks are read one image at a time).
 
         **Resumable**: the job is labelled with a digest of the folder's files (paths, sizes,
         times), the selection and the parameters. If this user already has an unfinished job with
@@ -276,11 +278,18 @@ class MaxfsClient:
             missing = list(self.status(job_id).get("missing_images", range(ds.k)))
         try:
             sent = ds.k - len(missing)
-            for i in missing:
-                self.upload_image(job_id, i, ds.read(i))
-                sent += 1
-                if on_upload:
-                    on_upload(sent, ds.k)
+            # the next image is decoded while this one is sent (decoders release the GIL)
+            with ThreadPoolExecutor(1, thread_name_prefix="maxfs-read") as pool:
+                ahead = pool.submit(ds.read, missing[0]) if missing else None
+                for n, i in enumerate(missing):
+                    assert ahead is not None
+                    image = ahead.result()
+                    ahead = pool.submit(ds.read, missing[n + 1]) if n + 1 < len(missing) else None
+                    self.upload_image(job_id, i, image)
+                    del image
+                    sent += 1
+                    if on_upload:
+                        on_upload(sent, ds.k)
             if ds.mask is not None:
                 self.upload_mask(job_id, ds.mask)
             self.start(job_id)

@@ -173,10 +173,11 @@ def cmd_run(args: argparse.Namespace) -> int:
     with tm.phase("imports"):  # while the images are decoded (prefetch)
         from maxfs.service.runs.local import run_folder
         from maxfs.storage.layout import JobSpec
-        from maxfs.storage.requests import job_params
+        from maxfs.storage.requests import job_params, tile_is_auto
 
     spec = JobSpec(ds.k, ds.height, ds.width, ds.channels, ds.dtype, ds.lights, ds.intensities).validate()
-    params = job_params(spec, _params(args), settings.task_memory)
+    options = _params(args)
+    params = job_params(spec, options, settings.task_memory, ds.mask)
     print(f"{ds.name}: {ds.k} images of {ds.height} x {ds.width} ({ds.layout}, {ds.dtype})", file=sys.stderr)
     store, rec = run_folder(
         ds,
@@ -191,6 +192,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         on_progress=_progress(),
         timings=tm,
         prefetch=prefetch,
+        tile_auto=tile_is_auto(options),
     )
     if args.timings:
         print(tm.table(), file=sys.stderr)

@@ -18,6 +18,7 @@ import shutil
 import tempfile
 import time
 import uuid
+from collections import OrderedDict
 from collections.abc import Callable
 from pathlib import Path
 
@@ -49,6 +50,8 @@ from maxfs.storage.tokens import User
 log = logging.getLogger("maxfs.jobs")
 #: Prefix of every temporary file a process writes in a job folder (removed on start).
 TEMP_PREFIX = ".maxfs-"
+#: Jobs whose store :meth:`JobManager._upload_store` keeps open for their uploads.
+UPLOAD_STORES = 64
 
 
 def owns(user: User, rec: JobRecord) -> bool:
@@ -75,6 +78,7 @@ class JobManager:
         self.runs: dict[str, asyncio.Task] = {}
         self.locks: dict[str, asyncio.Lock] = {}
         self.specs: dict[str, JobSpec] = {}
+        self.writable: OrderedDict[str, JobStore] = OrderedDict()  # see _upload_store
         s = settings
         #: each user's jobs (service.http.index); every tile's priority (service.runs.fairness)
         self.index = JobIndex()
@@ -219,6 +223,16 @@ class JobManager:
     def store(self, job_id: str, mode: str = "r") -> JobStore:
         return JobStore.open(self.job_dir(job_id), mode=mode)
 
+    def _upload_store(self, job_id: str) -> JobStore:
+        """The job's store opened for writing, kept while it takes uploads (an open reads a
+        dozen metadata files, a sizeable share of a small image's upload); dropped when the
+        job starts or goes, and beyond the :data:`UPLOAD_STORES` most recent jobs."""
+        store = self.writable.pop(job_id, None) or self.store(job_id, "r+")
+        self.writable[job_id] = store
+        while len(self.writable) > UPLOAD_STORES:
+            self.writable.popitem(last=False)
+        return store
+
     def spec(self, job_id: str) -> JobSpec:
         """A job's input spec (it never changes, so it is read once)."""
         if job_id not in self.specs:
@@ -247,7 +261,7 @@ class JobManager:
             rec = self.record(job_id)
             if rec.state not in TRANSITIONS[event]:
                 raise ConflictError(f"job {job_id} is {rec.state.value}; {what} only before start")
-            await asyncio.to_thread(write, self.store(job_id, "r+"))
+            await asyncio.to_thread(write, self._upload_store(job_id))
             rec = self.record(job_id)  # nothing else changes it meanwhile (the lock); re-read anyway
             rec.state = rec.state.after(event)
             if image is not None:
@@ -275,6 +289,7 @@ class JobManager:
                 rec.state = rec.state.after("resume")
             elif rec.state not in TRANSITIONS["start"]:
                 raise ConflictError(f"job {job_id} is already {rec.state.value}")
+            self.writable.pop(job_id, None)
             store = self.store(job_id)
 
             def check_inputs() -> None:  # reads the store (the whole mask): in a thread
@@ -409,6 +424,7 @@ class JobManager:
         self.job_dir(job_id).rename(trash)  # tile tasks still finishing see their folder gone
         self.index.remove(job_id)
         self.specs.pop(job_id, None)
+        self.writable.pop(job_id, None)
         return trash
 
     async def sweep(self, now: float | None = None) -> list[str]:

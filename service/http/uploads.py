@@ -42,12 +42,13 @@ class Uploads:
         self.m = manager
         self.s = settings
 
-    def before_upload(self, request: Request, job_id: str, what: str) -> JobStore:
-        """Owner and state checks that need no body, so a doomed upload is refused unread."""
+    def before_upload(self, request: Request, job_id: str, what: str) -> JobSpec:
+        """Owner and state checks that need no body, so a doomed upload is refused unread; the
+        job's spec (read once per job, not a store opened per request)."""
         rec = self.m.access(job_id, user_of(request))
         if not rec.state.accepts_uploads:
             raise ConflictError(f"job {job_id} is {rec.state.value}; {what} only before start")
-        return self.m.store(job_id)
+        return self.m.spec(job_id)
 
     async def image(self, request: Request, job_id: str, index: int) -> None:
         """Store image ``index`` from the request body: raw little-endian bytes, or PNG/TIFF."""
@@ -60,9 +61,9 @@ class Uploads:
             raise NotFoundError(f"job {job_id} was deleted during the upload") from None
 
     async def _image(self, request: Request, job_id: str, index: int) -> None:
-        store = self.before_upload(request, job_id, "images can be uploaded")
-        spec = store.spec
-        store.check_index(index)
+        spec = self.before_upload(request, job_id, "images can be uploaded")
+        if not 0 <= index < spec.k:
+            raise NotFoundError(f"image index {index} is out of range; this job has images 0..{spec.k - 1}")
         raw = is_raw(request)
         limit = spec.image_nbytes if raw else min(self.s.max_upload_bytes, 2 * spec.image_nbytes + (1 << 20))
         check_declared(request, limit)
@@ -106,7 +107,7 @@ class Uploads:
 
     async def mask(self, request: Request, job_id: str) -> None:
         """Store the object mask from the request body: PNG (non-zero = object) or raw H*W bytes."""
-        spec = self.before_upload(request, job_id, "the mask can be set").spec
+        spec = self.before_upload(request, job_id, "the mask can be set")
         HW = spec.height * spec.width
         with self.m.uploads.take(user_of(request).name), self.m.disk.hold(2 * HW, "the mask"):
             data = await read_body(request, 2 * HW + (1 << 20), self.s.upload_idle_timeout)

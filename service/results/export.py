@@ -150,13 +150,13 @@ def export(
         raise InvalidInputError(f"mesh formats are {', '.join(MESH_FORMATS)}, got {bad}")
     store_path = Path(store_path)
     store = JobStore.open(store_path, mode="r")
-    done = store.done_grid()
+    counts = store.progress()  # tiles with masked pixels, as the job's record counts them
     out = Path(folder) if folder else default_folder(store_path)
     out.mkdir(parents=True, exist_ok=True)
     manifest: dict = {
         "store": str(store_path),
-        "tiles_done": int(done.sum()),
-        "tiles_total": int(done.size),
+        "tiles_done": counts.tiles_done,
+        "tiles_total": counts.tiles_total,
         "files": {},
     }
     files = manifest["files"]

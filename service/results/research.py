@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import re
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
@@ -17,8 +18,10 @@ from numpy.typing import NDArray
 from maxfs.storage.imageio import encode_png
 from maxfs.storage.layout import JobStore
 from maxfs.storage.options import DepthMethod
-from maxfs.worker.depth import Camera, DepthResult, integrate, relief_rgb
 from maxfs.worker.evaluate import Evaluation, error_map_rgb, evaluate, load_ground_truth
+
+if TYPE_CHECKING:  # the depth module loads numba (its kernels): only where depth is made
+    from maxfs.worker.depth import Camera, DepthResult
 
 EVAL_JSON = "maxfs-eval-{gt}.json"
 ERROR_MAP = "angular_error-{gt}.png"
@@ -63,8 +66,8 @@ def evaluate_store(
         "error_map": str(map_path),
         "max_deg": max_deg,
     }
-    done = store.done_grid()
-    doc["tiles_done"], doc["tiles_total"] = int(done.sum()), int(done.size)
+    counts = store.progress()  # tiles with masked pixels, as the job's record counts them
+    doc["tiles_done"], doc["tiles_total"] = counts.tiles_done, counts.tiles_total
     json_path.write_text(json.dumps(doc, indent=1) + "\n")
     return ev, map_path, json_path
 
@@ -84,12 +87,16 @@ def folder_camera(folder: Path | str) -> dict[str, float]:
     p = Path(folder) / INTRINSICS_FILE
     if not p.is_file():
         return {}
+    from maxfs.worker.depth import Camera
+
     c = Camera.from_file(p)
     return {"fx": c.fx, "fy": c.fy, "cx": c.cx, "cy": c.cy}
 
 
 def camera_of(options: dict) -> Camera | None:
     """The perspective camera the options give (all of fx, fy, cx, cy), else None (orthographic)."""
+    from maxfs.worker.depth import Camera
+
     if options.get("fx") is None:
         return None
     return Camera(options["fx"], options["fy"], options["cx"], options["cy"])
@@ -107,6 +114,7 @@ def write_depth(
     (and writes nothing) for ``depth="none"``.
     """
     from maxfs.storage.options import check_depth_options
+    from maxfs.worker.depth import integrate, relief_rgb
 
     store = JobStore.open(Path(path), mode="r+")
     opts = store.params.depth_options() | {k: v for k, v in options.items() if v is not None}
@@ -139,9 +147,10 @@ def write_depth(
     return res
 
 
-def finish_results(path: Path | str) -> str:
-    """What follows a finished run: the depth map, by the job's method. Returns a note for the user."""
-    res = write_depth(path)
+def finish_results(path: Path | str, normal: NDArray[np.floating] | None = None) -> str:
+    """What follows a finished run: the depth map, by the job's method (``normal`` as for
+    :func:`write_depth`). Returns a note for the user."""
+    res = write_depth(path, normal)
     if res is None:
         return "depth: none asked for"
     return (

@@ -68,11 +68,12 @@ class JobRun:
         return resolve_eps(self.store, estimate)
 
     def prepare(self) -> list[Tile]:
-        """The record's counts from the finished tiles, and the unfinished tiles, largest first."""
+        """The record's counts from the finished tiles, and the unfinished tiles, largest first
+        (a tile without masked pixels is never one: :meth:`JobStore.done_grid`)."""
         params = self.store.params
         self.rec.eps = params.eps
         count_finished(self.rec, self.store)
-        done = self.store.done_grid().ravel()
+        done = self.store.done_grid().ravel()  # tiles without masked pixels count as done
         return self.store.by_masked_pixels(t for t in self.store.tiles() if not done[t.index])
 
     def running(self) -> None:

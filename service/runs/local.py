@@ -11,7 +11,11 @@ import asyncio
 import contextlib
 import logging
 import shutil
-from collections.abc import Callable
+import threading
+import time
+from collections.abc import Callable, Iterable
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -40,16 +44,26 @@ COMPILING = (
 
 
 def ingest(
-    ds: Dataset, out: Path, params: JobParams, *, overwrite: bool = False, copy_images: bool = True
+    ds: Dataset,
+    out: Path,
+    params: JobParams,
+    *,
+    overwrite: bool = False,
+    copy_images: bool = True,
+    threads: int = 2,
+    stop: threading.Event | None = None,
+    tile_auto: bool = False,
 ) -> tuple[JobStore, str]:
     """Create or reopen the output store for ``ds``; copy images not yet stored (into a
     new store only if ``copy_images``: :func:`run_folder` may keep them in memory and
-    store only their digests instead).
+    store only their digests instead), on ``threads`` threads (:func:`store_images`; ``stop``
+    set: the images not yet begun are skipped).
 
     A store that already holds *other* inputs (images, mask, lights or intensities,
     compared by content digest) is refused unless ``overwrite``, which removes it and
     starts from scratch. Unchanged inputs are recognised from the files' fingerprint
-    (paths, sizes, times) without decoding them again. Returns the store and a note
+    (paths, sizes, times) without decoding them again. ``tile_auto``: the user left the tile
+    edge to "auto", so an existing store's own edge is accepted. Returns the store and a note
     for the user ("" when nothing notable happened).
     """
     out = Path(out)
@@ -68,6 +82,10 @@ def ingest(
         store = JobStore.open(out)
         _check_same_inputs(store, ds, spec, out, copy_images)
         old = store.params
+        if tile_auto:
+            # "auto" resumes on the grid the job began with: the rule may have changed since
+            # (or the mask's balance differs), and finished tiles are kept only on that grid
+            params = replace(params, tile=old.tile)
         comparable = old.unresolved() if params.eps is None else old
         if comparable != params:
             # never a quiet replacement: a sweep into one folder would keep only its last run
@@ -88,12 +106,33 @@ def ingest(
         save_record(out, JobRecord(id=out.name))
         if ds.mask is not None:
             store.write_mask(ds.mask)
-        for i in range(ds.k) if copy_images else ():
-            store.write_image(i, ds.read(i))
+        if copy_images:
+            store_images(ds, store, range(ds.k), threads, stop)
     store.source_fingerprint = ds.fingerprint()
     if not store.read_mask().any():
         raise InvalidInputError(f"the mask of {ds.name} selects no pixel; nothing to solve")
     return store, note
+
+
+def store_images(
+    ds: Dataset, store: JobStore, indices: Iterable[int], threads: int, stop: threading.Event | None = None
+) -> None:
+    """Decode images ``indices`` of ``ds`` and store them (:meth:`JobStore.write_image`: whole
+    shards, digests made as they are written) on ``threads`` threads: each image is read once and
+    reaches the store once, and the decoders, zstd, BLAKE2b and file writes release the GIL, so
+    the copy runs at about the rate of decoding. The first error is raised, and images not begun
+    are skipped, as they are once ``stop`` is set."""
+
+    def one(i: int) -> None:
+        if stop is None or not stop.is_set():
+            store.write_image(i, ds.read(i))
+
+    pool = ThreadPoolExecutor(max(1, threads), thread_name_prefix="maxfs-store")
+    try:
+        for f in [pool.submit(one, i) for i in indices]:
+            f.result()
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
 
 
 def param_changes(old: JobParams, new: JobParams) -> str:
@@ -168,6 +207,78 @@ async def _run(out: Path, settings: Settings, on_progress: ProgressFn | None) ->
         return await run_job(dc.client, out, on_progress=on_progress)
 
 
+async def _ingest_and_run(
+    ds: Dataset,
+    out: Path,
+    params: JobParams,
+    settings: Settings,
+    *,
+    overwrite: bool,
+    early: bool,
+    on_note: Callable[[str], None] | None,
+    on_progress: ProgressFn | None,
+    tm: Timings,
+    tile_auto: bool = False,
+) -> tuple[JobStore, JobRecord | None]:
+    """:func:`run_folder` on a Dask cluster. With ``early`` (a fresh output: the job cannot be
+    finished already) the cluster starts while the images are decoded and stored, its workers
+    loading the solver meanwhile; a done job's previews and depth are made while it stops.
+    Returns the store and the record, or None for the record when the job was finished before."""
+    from maxfs.service.runs.cluster import DaskCluster, start_cluster  # imports distributed
+    from maxfs.service.runs.orchestrator import run_job
+
+    out = out.absolute()  # workers elsewhere have other working folders
+    logs = out / "slurm-logs"  # SLURM worker jobs write their logs beside the results
+
+    starting = asyncio.ensure_future(start_cluster(settings, log_dir=logs)) if early else None
+    stop = threading.Event()
+    dc: DaskCluster | None = None
+    try:
+        t0 = time.perf_counter()
+        try:
+            store, note = await asyncio.to_thread(
+                ingest,
+                ds,
+                out,
+                params,
+                overwrite=overwrite,
+                threads=settings.workers,
+                stop=stop,
+                tile_auto=tile_auto,
+            )
+        finally:
+            stop.set()  # interrupted: the copy threads stop after the images they hold
+            tm.add("open or create the store", time.perf_counter() - t0)
+        if note and on_note:
+            on_note(note)
+        if store.done_grid().all() and (out / "previews").is_dir():
+            return store, None  # finished earlier with these inputs and parameters
+        t0 = time.perf_counter()
+        dc = await (starting or start_cluster(settings, log_dir=logs))
+        starting = None
+        tm.add("cluster start (what reading left)", time.perf_counter() - t0)
+        t0 = time.perf_counter()
+        rec = await run_job(dc.client, out, on_progress=on_progress)
+        tm.add("cluster run (tiles)", time.perf_counter() - t0)
+        if rec.state is JobState.DONE:
+            closing, dc = asyncio.ensure_future(dc.close()), None
+            try:
+                found = await asyncio.to_thread(finish, out, tm)
+            finally:
+                await closing
+            rec.calibration = [*(f"input folder: {n}" for n in ds.notes), *found]
+            save_record(out, rec)
+        return store, rec
+    finally:
+        if starting is not None:  # never cancelled half-way: a cluster half started leaves processes
+            with contextlib.suppress(Exception):
+                dc = await starting
+        if dc is not None:
+            t0 = time.perf_counter()
+            await dc.close()
+            tm.add("cluster stop", time.perf_counter() - t0)
+
+
 def run_store(
     out: Path,
     *,
@@ -191,24 +302,33 @@ def finish(
 ) -> list[str]:
     """What a finished job gets besides its arrays: PNG previews, depth (see :mod:`service.results.research`),
     and the calibration checks (:func:`worker.task.check_calibration`; ``read_images`` as there).
-    Returns what those checks found suspect, for the record's ``calibration``."""
+    Returns what those checks found suspect, for the record's ``calibration``. The outputs are read
+    once, for all three (a chunk per tile each)."""
     from maxfs.service.results.research import finish_results
 
     tm = timings or Timings()
     with tm.phase("previews"):
-        write_previews(JobStore.open(out, mode="r"))
+        store = JobStore.open(out, mode="r")
+        arrays = preview_inputs(store)
+        write_previews(store, arrays)
     with tm.phase("depth and derived results"):
-        finish_results(out)
+        finish_results(out, normal=arrays["normal"])
     with tm.phase("calibration checks"):
-        return calibration_messages(out, read_images)
+        return calibration_messages(out, read_images, arrays)
 
 
-def calibration_messages(out: Path, read_images: Callable[[Tile], NDArray] | None = None) -> list[str]:
-    """The messages of the calibration checks that tripped on the finished job at ``out``."""
+def calibration_messages(
+    out: Path, read_images: Callable[[Tile], NDArray] | None = None, arrays: dict[str, NDArray] | None = None
+) -> list[str]:
+    """The messages of the calibration checks that tripped on the finished job at ``out``
+    (``arrays``: its ``normal`` and ``source`` outputs, if the caller has read them)."""
     from maxfs.worker.task import check_calibration  # imports the solver module: only once a job is done
 
+    got = arrays or {}
     try:
-        found = check_calibration(JobStore.open(out, mode="r"), read_images)
+        found = check_calibration(
+            JobStore.open(out, mode="r"), read_images, got.get("normal"), source=got.get("source")
+        )
     except Exception as e:  # the results stand; a user must still hear that nothing was checked
         log.exception("calibration checks of %s failed", out)
         return [f"the calibration checks could not run ({type(e).__name__}: {e})"]
@@ -229,6 +349,7 @@ def run_folder(
     on_progress: ProgressFn | None = None,
     timings: Timings | None = None,
     prefetch: StackReader | None = None,
+    tile_auto: bool = False,
 ) -> tuple[JobStore, JobRecord]:
     """``maxfs run``: ingest ``ds`` into ``out`` (or resume it) and solve every tile.
 
@@ -238,7 +359,8 @@ def run_folder(
     otherwise on a Dask cluster (:mod:`service.runs.cluster`): the embedded one, SLURM
     worker jobs, or ``scheduler``. A finished job is not run again: it costs a look at
     its done markers. Results are bit-identical either way. ``prefetch``: the stack, being
-    decoded since the folder was opened (used in process, cancelled otherwise).
+    decoded since the folder was opened (used in process, cancelled otherwise). ``tile_auto``:
+    as for :func:`ingest`.
     """
     out = Path(out)
     tm = timings or Timings()
@@ -246,32 +368,44 @@ def run_folder(
     with prefetch or contextlib.nullcontext():
         settings = cluster_settings(scheduler, workers, cluster)
         in_process = runs_in_process(settings, ds.nbytes, in_process_bytes)
+        if not in_process:
+            fresh = overwrite or not out.exists() or (out.is_dir() and not any(out.iterdir()))
+            store, got = asyncio.run(
+                _ingest_and_run(
+                    ds,
+                    out,
+                    params,
+                    settings,
+                    overwrite=overwrite,
+                    early=fresh,
+                    on_note=on_note,
+                    on_progress=on_progress,
+                    tm=tm,
+                    tile_auto=tile_auto,
+                )
+            )
+            return store, got if got is not None else load_record(out)
         with tm.phase("open or create the store"):
-            store, note = ingest(ds, out, params, overwrite=overwrite, copy_images=not in_process)
+            store, note = ingest(ds, out, params, overwrite=overwrite, copy_images=False, tile_auto=tile_auto)
         if note and on_note:
             on_note(note)
         if store.done_grid().all() and (out / "previews").is_dir():
             return store, load_record(out)  # finished earlier with these inputs and parameters
-        if in_process:
-            with tm.phase("imports"):  # the solver (numba) only now: a finished job never loads it
-                from maxfs.service.runs.inprocess import run_in_process
-                from maxfs.worker.task import load_kernels
+        with tm.phase("imports"):  # the solver (numba) only now: a finished job never loads it
+            from maxfs.service.runs.inprocess import run_in_process
+            from maxfs.worker.task import load_kernels
 
-            images = None
-            if not store.uploaded().all():  # the stack stays in memory; only its digests are stored
-                with tm.phase("read images"):
-                    images = read_stack(ds, store, workers, prefetch)
-            if store.params.solver == "exact":
-                with tm.phase("load the solver"):  # its own row: 0.7 s from the cache, or a compile
-                    try:
-                        load_kernels(on_compile=(lambda: on_note(COMPILING)) if on_note else None)
-                    except Exception:  # the first tile raises it again, and the job fails with it
-                        pass
-            rec = run_in_process(out, threads=workers, images=images, on_progress=on_progress, timings=tm.add)
-        else:
-            images = None
-            with tm.phase("cluster run (start, tiles, stop)"):
-                rec = asyncio.run(_run(out, settings, on_progress))
+        images = None
+        if not store.uploaded().all():  # the stack stays in memory; only its digests are stored
+            with tm.phase("read images"):
+                images = read_stack(ds, store, workers, prefetch)
+        if store.params.solver == "exact":
+            with tm.phase("load the solver"):  # its own row: 0.7 s from the cache, or a compile
+                try:
+                    load_kernels(on_compile=(lambda: on_note(COMPILING)) if on_note else None)
+                except Exception:  # the first tile raises it again, and the job fails with it
+                    pass
+        rec = run_in_process(out, threads=workers, images=images, on_progress=on_progress, timings=tm.add)
         if rec.state is JobState.DONE:
             stack = images
             reader = None if stack is None else (lambda t: stack[:, t.y0 : t.y1, t.x0 : t.x1])
@@ -290,11 +424,17 @@ def read_stack(ds: Dataset, store: JobStore, threads: int, reader: StackReader |
     return images
 
 
-def write_previews(store: JobStore) -> list[Path]:
-    """PNG previews under ``previews/`` in the job directory."""
+def preview_inputs(store: JobStore) -> dict[str, NDArray]:
+    """The outputs the previews are drawn from, by name (``normal`` and ``source`` among them)."""
+    return {n: store.read_output(n) for n in store.output_names() if n in PREVIEW_INPUTS}
+
+
+def write_previews(store: JobStore, arrays: dict[str, NDArray] | None = None) -> list[Path]:
+    """PNG previews under ``previews/`` in the job directory (``arrays``: :func:`preview_inputs`,
+    if the caller has read them)."""
     d = store.path / "previews"
     d.mkdir(exist_ok=True)
-    arrays = {n: store.read_output(n) for n in store.output_names() if n in PREVIEW_INPUTS}
+    arrays = preview_inputs(store) if arrays is None else arrays
     paths = []
     for name in PREVIEWS:
         p = d / f"{name}.png"

@@ -1,0 +1,102 @@
+"""Image shards written by :class:`storage.shards.ShardWriter` read back through zarr exactly as
+written, and as zarr itself would have stored them: every dtype and colour layout the stores
+hold, edge shards and chunks, chunks of fill value only, images replaced."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zarr
+from zarr.codecs import BloscCodec, ZstdCodec
+
+from maxfs.storage.layout import GROUP_DIR, PATHS, JobSpec, JobStore
+from maxfs.storage.params import JobParams
+from maxfs.storage.shards import ShardWriter
+from maxfs.worker import synthetic
+
+
+def _store(path: Path, k: int, h: int, w: int, channels: int | None, dtype: str, tile: int) -> JobStore:
+    spec = JobSpec(k, h, w, channels, dtype, synthetic.lights_uniform(k))
+    return JobStore.create(path, spec, JobParams.build(eps=2.0, tile=tile))
+
+
+def _images(k: int, shape: tuple[int, ...], dtype: str, seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    if dtype == "float32":
+        a = rng.random((k, *shape), dtype=np.float32)
+    else:
+        a = rng.integers(0, np.iinfo(dtype).max, (k, *shape), dtype=dtype)
+    a[0] = 0  # an image of fill value only: no shard file at all
+    a[1, : shape[0] // 2] = 0  # whole chunks and shards of fill value beside stored ones
+    return a
+
+
+@pytest.mark.parametrize(
+    ("h", "w", "channels", "dtype", "tile"),
+    [
+        (70, 45, None, "uint16", 16),
+        (33, 64, 3, "uint8", 16),
+        (20, 21, None, "float32", 8),
+        (16, 16, 3, "uint16", 16),
+    ],
+)
+def test_shards_read_back_as_zarr_writes_them(
+    tmp_path: Path, h: int, w: int, channels: int | None, dtype: str, tile: int
+) -> None:
+    k = 4
+    shape = (h, w) if channels is None else (h, w, channels)
+    images = _images(k, shape, dtype, seed=h * w)
+    fast = _store(tmp_path / "fast", k, h, w, channels, dtype, tile)
+    assert fast._shard_writer() is not None, "the stores this version creates get the fast writer"
+    slow = _store(tmp_path / "slow", k, h, w, channels, dtype, tile)
+    slow._writer = (None,)  # through zarr's own codec pipeline
+    for i in range(k):
+        fast.write_image(i, images[i])
+        slow.write_image(i, images[i])
+    again = JobStore.open(tmp_path / "fast", mode="r")
+    assert again.uploaded().all()
+    assert again.digests() == JobStore.open(tmp_path / "slow", mode="r").digests()
+    for i in range(k):
+        np.testing.assert_array_equal(again.read_array("images", i), images[i])
+    # the files are zarr's: the same set of shards (none where all is fill value), each decoding
+    # to the same values as zarr's own, read a tile at a time as tile tasks read them
+    root = Path(GROUP_DIR) / PATHS["images"] / "c"
+    files = sorted(p.relative_to(tmp_path / "fast").as_posix() for p in (tmp_path / "fast" / root).rglob("*"))
+    assert files == sorted(
+        p.relative_to(tmp_path / "slow").as_posix() for p in (tmp_path / "slow" / root).rglob("*")
+    )
+    assert not any((tmp_path / "fast" / root / "0").rglob("*[0-9]")), "an image of zeros stores no shard"
+    for t in again.tiles():
+        np.testing.assert_array_equal(again.read_tile_images(t), images[:, t.y0 : t.y1, t.x0 : t.x1])
+
+
+def test_an_image_replaced_by_another_reads_as_the_new_one(tmp_path: Path) -> None:
+    store = _store(tmp_path / "s", 3, 40, 30, None, "uint16", 16)
+    old, new = _images(2, (40, 30), "uint16", seed=1)[::-1], _images(2, (40, 30), "uint16", seed=2)
+    for i in range(2):
+        store.write_image(i, old[i])
+    for i in range(2):
+        store.write_image(i, new[i])  # image 0 becomes all fill value, image 1 half of it
+    store = JobStore.open(tmp_path / "s", mode="r")
+    for i in range(2):
+        np.testing.assert_array_equal(store.read_array("images", i), new[i])
+
+
+def test_arrays_of_other_codecs_get_no_writer_and_are_written_by_zarr(tmp_path: Path) -> None:
+    g = zarr.open_group(tmp_path / "g", mode="w-", zarr_format=3)
+    common = dict(shape=(2, 32, 32), chunks=(1, 16, 16), shards=(1, 16, 32), dtype="uint16", fill_value=0)
+    for name, comp in [("blosc", BloscCodec()), ("checksum", ZstdCodec(level=1, checksum=True))]:
+        a = g.create_array(name, compressors=comp, **common)
+        assert ShardWriter.for_array(tmp_path / "g" / name, a) is None, name
+    plain = g.create_array("plain", chunks=(1, 16, 16), shape=(2, 32, 32), dtype="uint16")  # no shards
+    assert ShardWriter.for_array(tmp_path / "g" / "plain", plain) is None
+    ok = g.create_array("ok", compressors=ZstdCodec(level=3), **common)
+    w = ShardWriter.for_array(tmp_path / "g" / "ok", ok)
+    assert w is not None
+    block = np.arange(16 * 32, dtype=np.uint16).reshape(1, 16, 32)
+    w.write((1, 1, 0), block)
+    np.testing.assert_array_equal(ok[1, 16:], block[0])
+    with pytest.raises(ValueError, match="holds"):
+        w.write((1, 0, 0), block[:, :8])
