@@ -47,7 +47,7 @@ import numpy as np
 from maxfs.storage.inputs import load_folder
 from maxfs.storage.observations import ObservationModel
 from maxfs.storage.tiles import DEFAULT_TILE
-from maxfs.worker import solvers as solver_registry
+from maxfs.worker import exact as exact_module
 from maxfs.worker import synthetic
 from maxfs.worker.exact import exact_pixels
 from maxfs.worker.lstsq import refit
@@ -154,13 +154,13 @@ def robust_pixels(name: str, raw: np.ndarray, L: np.ndarray, mask: np.ndarray, i
     """The kernel's arguments when :func:`worker.solve.solve` (``maxfs run``'s defaults: the
     robust model, eps auto) solves the raw stack in one tile; eps is the estimated one."""
     calls = []
-    kernel = solver_registry.exact_pixels
+    kernel = exact_module.exact_pixels
 
     def record(S, lo, hi, valid, L_, box_factor, max_nodes, above=None):
         calls.append((S.copy(), lo.copy(), hi.copy(), valid.copy(), box_factor))
         return kernel(S, lo, hi, valid, L_, box_factor, max_nodes, above)
 
-    with mock.patch.object(solver_registry, "exact_pixels", record):
+    with mock.patch.object(exact_module, "exact_pixels", record):  # the solvers import it per call
         sol = solve(raw, L, mask, intensities=intensities, tile=max(raw.shape[1:3]))
     S, lo, hi, valid, box_factor = calls[0]
     return Pixels(f"{name} (robust)", S, valid, L, float(sol.eps), box_factor, lo, hi)
