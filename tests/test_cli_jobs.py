@@ -153,3 +153,40 @@ def test_named_jobs_reuse_and_two_submits_of_one_folder(
     assert "bear eps 2" in _maxfs("jobs", *url).stdout
     who = httpx.get(server.url + "/jobs", timeout=30).headers["X-Maxfs-User"]
     assert who == "no sign-in (auth is off)"
+
+
+def test_submit_gives_the_server_the_grid_of_maxfs_run(
+    tmp_path: Path, server_factory: Callable[..., Server]
+) -> None:
+    """A server cannot balance tiles over a mask that arrives after the job, so ``maxfs submit``
+    sends the edge ``maxfs run`` chooses: the same grid, so the same normals bit for bit (ties
+    are decided by the grid). A server whose task budget refuses that edge chooses its own."""
+    from maxfs.service.cli.client import run_tile
+    from maxfs.storage.inputs import load_folder
+    from maxfs.storage.layout import JobStore
+    from maxfs.storage.tiles import tile_memory
+
+    s = synthetic.sphere(8, 160, specular=0.0)  # a disc in a frame that alone asks for one large tile
+    folder = write_npy_folder(tmp_path / "in", s.images.astype(np.uint8), s.lights, s.mask)
+    edge = run_tile(load_folder(folder), {})
+    r = _maxfs("run", str(folder), "-o", str(tmp_path / "local"), "--eps", "1")
+    assert r.returncode == 0, r.stderr
+    local = JobStore.open(tmp_path / "local", mode="r")
+    assert local.params.tile == edge < 160
+
+    server = server_factory(workers=1, graceful=True)
+    r = _maxfs("submit", str(folder), "--server", server.url, "--eps", "1", "--wait")
+    assert r.returncode == 0, r.stderr
+    r = _maxfs("fetch", r.stdout.split()[0], "--server", server.url, "-o", str(tmp_path / "remote"))
+    assert r.returncode == 0, r.stderr
+    remote = JobStore.open(tmp_path / "remote", mode="r")
+    assert remote.params.tile == edge
+    assert remote.read_output("normal").tobytes() == local.read_output("normal").tobytes()
+
+    small = server_factory(
+        data_dir=tmp_path / "small", env={"MAXFS_TASK_MEMORY": str(tile_memory(edge - 16, 8, None, 1))}
+    )
+    r = _maxfs("submit", str(folder), "--server", small.url, "--eps", "1")
+    assert r.returncode == 0, r.stderr  # refused edge: the server's own auto edge instead
+    log = small.log.read_text()
+    assert '"POST /jobs HTTP/1.1" 422' in log and '"POST /jobs HTTP/1.1" 201' in log, log

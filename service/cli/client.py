@@ -22,7 +22,7 @@ from pydantic import ValidationError
 from maxfs.service.http.models import ErrorBody, JobStatus
 from maxfs.service.http.statuses import error_for_status
 from maxfs.storage.datasets import Dataset
-from maxfs.storage.errors import ConflictError, MaxfsError
+from maxfs.storage.errors import ConflictError, InvalidInputError, MaxfsError
 from maxfs.storage.inputs import load_folder
 from maxfs.storage.records import FINAL_STATES, JobState
 
@@ -48,6 +48,20 @@ def answer_error(status: int, detail: str) -> MaxfsError:
     err = error_for_status(status)(f"server said {status}: {detail}")
     err.http_status = status  # type: ignore[attr-defined]
     return err
+
+
+def run_tile(ds: Dataset, params: dict[str, Any]) -> int:
+    """The tile edge ``maxfs run`` gives ``ds`` with these options under "auto" (balanced over
+    its mask, :func:`storage.tiles.balanced_edge`). A server cannot balance a job's tiles (the
+    mask arrives after the job, and with it the grid), so ``maxfs submit`` sends this edge:
+    the same grid as a local run, and so the same results, ties included."""
+    from maxfs.service.settings import Settings
+    from maxfs.storage.layout import JobSpec
+    from maxfs.storage.requests import DEFAULTS, resolve_tile
+
+    spec = JobSpec(ds.k, ds.height, ds.width, ds.channels, ds.dtype, ds.lights, ds.intensities).validate()
+    solver = str(params.get("solver") or DEFAULTS["solver"])
+    return resolve_tile(spec, "auto", solver, Settings().task_memory, ds.mask)
 
 
 class MaxfsClient:
@@ -242,6 +256,9 @@ class MaxfsClient:
         if existing not in ("new", "reuse", "refuse"):
             raise ValueError(f"existing must be new, reuse or refuse, got {existing!r}")
         ds = folder if isinstance(folder, Dataset) else load_folder(folder)
+        chosen = params.get("tile") in (None, "auto") and ds.mask is not None
+        if chosen:
+            params = {**params, "tile": run_tile(ds, params)}
         meta: dict[str, Any] = {
             "k": ds.k,
             "height": ds.height,
@@ -271,7 +288,13 @@ class MaxfsClient:
         if found is not None and found["state"] in (JobState.QUEUED, JobState.RUNNING):
             return found["id"]
         if found is None:
-            job_id = self.create_job(**meta, label=label, name=name or ds.name)["id"]
+            try:
+                job_id = self.create_job(**meta, label=label, name=name or ds.name)["id"]
+            except InvalidInputError as e:
+                if not chosen or "tile" not in str(e):
+                    raise
+                # this server's task budget or tile limit is smaller: let it choose the edge
+                job_id = self.create_job(**(meta | {"tile": "auto"}), label=label, name=name or ds.name)["id"]
             missing: list[int] = list(range(ds.k))
         else:
             job_id = found["id"]
