@@ -83,7 +83,7 @@ def measure(ds: Dataset, out: Path) -> tuple[dict[str, calibration.Finding], lis
     from maxfs.worker.task import check_calibration
 
     kw = _params(parser().parse_args(["run", "x", "-o", "y"]))
-    spec = JobSpec(ds.k, ds.height, ds.width, ds.channels, ds.dtype, ds.lights, ds.intensities).validate()
+    spec = JobSpec.of(ds)
     params = JobParams.build(**kw | {"tile": spec.resolve_tile(kw["tile"], Settings().task_memory, "exact")})
     _, rec = run_folder(ds, out, params, workers=2)
     stack = np.stack([ds.read(i) for i in range(ds.k)])

@@ -238,7 +238,7 @@ def _run(
     from maxfs.storage.requests import job_params, tile_is_auto
 
     settings = Settings()
-    spec = JobSpec(ds.k, ds.height, ds.width, ds.channels, ds.dtype, ds.lights, ds.intensities).validate()
+    spec = JobSpec.of(ds)
     params = job_params(spec, options, settings.task_memory, ds.mask)
     temp = output is None
     out = Path(tempfile.mkdtemp(prefix="maxfs-")) / "result" if temp else Path(output)  # type: ignore[arg-type]

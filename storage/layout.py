@@ -64,7 +64,7 @@ import time
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import zarr
@@ -86,6 +86,9 @@ from maxfs.storage.outputs import (
 from maxfs.storage.params import JobParams
 from maxfs.storage.shards import ShardWriter
 from maxfs.storage.tiles import Tile, auto_tile, grid_shape, masked_per_tile, tile_memory, tiles
+
+if TYPE_CHECKING:
+    from maxfs.storage.datasets import Dataset
 
 
 def lights_digest(spec: JobSpec) -> str:
@@ -164,6 +167,11 @@ class JobSpec:
     dtype: str
     lights: NDArray[np.float64]
     intensities: NDArray[np.float64] | None = None
+
+    @classmethod
+    def of(cls, ds: Dataset) -> JobSpec:
+        """The validated spec of an opened dataset's stack."""
+        return cls(ds.k, ds.height, ds.width, ds.channels, ds.dtype, ds.lights, ds.intensities).validate()
 
     def validate(self) -> JobSpec:
         if self.k < 3:

@@ -59,7 +59,7 @@ def run_tile(ds: Dataset, params: dict[str, Any]) -> int:
     from maxfs.storage.layout import JobSpec
     from maxfs.storage.requests import DEFAULTS, resolve_tile
 
-    spec = JobSpec(ds.k, ds.height, ds.width, ds.channels, ds.dtype, ds.lights, ds.intensities).validate()
+    spec = JobSpec.of(ds)
     solver = str(params.get("solver") or DEFAULTS["solver"])
     return resolve_tile(spec, "auto", solver, Settings().task_memory, ds.mask)
 

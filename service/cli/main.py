@@ -175,7 +175,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         from maxfs.storage.layout import JobSpec
         from maxfs.storage.requests import job_params, tile_is_auto
 
-    spec = JobSpec(ds.k, ds.height, ds.width, ds.channels, ds.dtype, ds.lights, ds.intensities).validate()
+    spec = JobSpec.of(ds)
     options = _params(args)
     params = job_params(spec, options, settings.task_memory, ds.mask)
     print(f"{ds.name}: {ds.k} images of {ds.height} x {ds.width} ({ds.layout}, {ds.dtype})", file=sys.stderr)

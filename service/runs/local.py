@@ -67,7 +67,7 @@ def ingest(
     for the user ("" when nothing notable happened).
     """
     out = Path(out)
-    spec = JobSpec(ds.k, ds.height, ds.width, ds.channels, ds.dtype, ds.lights, ds.intensities).validate()
+    spec = JobSpec.of(ds)
     note = ""
     if out.exists() and not out.is_dir():
         raise ConflictError(f"{out} is a file; give a folder path for the results")
