@@ -47,7 +47,7 @@ from numpy.typing import NDArray
 
 from maxfs.storage.errors import InvalidInputError
 from maxfs.storage.options import DEFAULT_DEPTH_K, DepthMethod
-from maxfs.worker.depth_solver import grid_links, solve
+from maxfs.worker.depth_solver import grid_links, join_pieces, solve
 
 #: What each method is, as recorded with the depth.
 DESCRIPTIONS = {
@@ -268,14 +268,8 @@ def _pieces(wh, down, lab):  # pragma: no cover - numba
     for i in range(n):
         for e in range(2):
             j = (i + 1 if wh[i] != 0.0 else -1) if e == 0 else down[i]
-            if j < 0:
-                continue
-            a, b = i, j
-            while lab[a] != a:
-                a = lab[a]
-            while lab[b] != b:
-                b = lab[b]
-            lab[max(a, b)] = min(a, b)
+            if j >= 0:
+                join_pieces(lab, i, j)
     count = 0
     for i in range(n):  # a parent comes before its children, so it is numbered already
         if lab[i] == i:

@@ -162,6 +162,23 @@ def _fine_diag(wh, wv, up, i):  # pragma: no cover - numba
     return d + float(wv[i])  # wv is 0 where there is no pixel below
 
 
+@njit(cache=True, nogil=True, inline="always")
+def find_root(parent, i):  # pragma: no cover - numba
+    """The root of ``i``'s piece in the union-find forest ``parent``."""
+    while parent[i] != i:
+        i = parent[i]
+    return i
+
+
+@njit(cache=True, nogil=True, inline="always")
+def join_pieces(parent, a, b):  # pragma: no cover - numba
+    """Join the pieces of ``a`` and ``b``: the lower root becomes the root of both (so a piece's root
+    is its first member)."""
+    ra = find_root(parent, a)
+    rb = find_root(parent, b)
+    parent[max(ra, rb)] = min(ra, rb)
+
+
 @njit(cache=True, nogil=True)
 def _fine_aggregate(dom, wh, wv, up, theta, agg, rows, cols, fill):  # pragma: no cover - numba
     """Aggregates of 2 x 2 blocks: the pieces of each block under strong edges, numbered block by block
@@ -213,12 +230,7 @@ def _fine_aggregate(dom, wh, wv, up, theta, agg, rows, cols, fill):  # pragma: n
                 da = _fine_diag(wh, wv, up, ia)
                 db = _fine_diag(wh, wv, up, ib)
                 if w > 0.0 and w >= theta * np.sqrt(da * db):
-                    ra, rb = root[p], root[q]
-                    while root[ra] != ra:
-                        ra = root[ra]
-                    while root[rb] != rb:
-                        rb = root[rb]
-                    root[max(ra, rb)] = min(ra, rb)
+                    join_pieces(root, p, q)
             for q in range(4):  # roots first (a root is the lowest slot of its piece)
                 ia = slot[q]
                 if ia < 0:
@@ -226,9 +238,7 @@ def _fine_aggregate(dom, wh, wv, up, theta, agg, rows, cols, fill):  # pragma: n
                 if _fine_diag(wh, wv, up, ia) == 0.0:
                     agg[ia] = -1
                     continue
-                rq = q
-                while root[rq] != rq:
-                    rq = root[rq]
+                rq = find_root(root, q)
                 if rq == q:
                     if fill:
                         rows[nc] = r // 2
@@ -365,19 +375,12 @@ def _coarse_pieces(indptr, idx, val, diag, rows, cols, theta, parent, key):  # p
             if j <= i or rows[j] // 2 != pr or cols[j] // 2 != pc:
                 continue
             if val[t] >= theta * np.sqrt(diag[i] * diag[j]):
-                ri, rj = i, j
-                while parent[ri] != ri:
-                    ri = parent[ri]
-                while parent[rj] != rj:
-                    rj = parent[rj]
-                parent[max(ri, rj)] = min(ri, rj)
+                join_pieces(parent, i, j)
     wmax = 0
     for i in range(n):
         wmax = max(wmax, cols[i] // 2 + 1)
     for i in range(n):
-        r = i
-        while parent[r] != r:
-            r = parent[r]
+        r = find_root(parent, i)
         parent[i] = r
         key[i] = ((rows[i] // 2) * wmax + cols[i] // 2) * n + r
 
