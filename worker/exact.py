@@ -274,6 +274,22 @@ def _hull_pass(
 
 
 @njit(cache=True, nogil=True, _nrt=False)
+def _bins(absL, invL, j, v, rad, lj, hj, d, hd, nb, iw):  # pragma: no cover - numba
+    """The bins of slab ``j``'s interval along axis ``d`` (as :func:`_interval`) among ``nb`` equal
+    bins of ``[-hd, hd]`` (``iw`` = bins per unit): the start's bin rounded down and the end's
+    rounded up, so the bins hold the exact interval."""
+    ro = max(rad - absL[j, d] * hd, 0.0)
+    iv = invL[j, d]
+    t0 = (lj - v - ro) * iv
+    t1 = (hj - v + ro) * iv
+    wide = nb * (iv == 0.0)  # L_jd = 0 (t0 = t1 = 0): no information, every bin
+    u0 = (min(t0, t1) + hd) * iw - 1e-6 - wide
+    u1 = (max(t0, t1) + hd) * iw + 1e-6 + wide
+    # np.int64, not int(): numba's int() of a float costs several times more here
+    return np.int64(min(max(u0, 0.0), nb - 1.0)), np.int64(min(max(u1, 0.0), nb - 1.0))
+
+
+@njit(cache=True, nogil=True, _nrt=False)
 def _hull_pass_bins(
     L, absL, invL, lo, hi, prow, pvrow, prrow, p, f, d, hd, pd, dc, dh, hs, he
 ):  # pragma: no cover - numba
@@ -306,17 +322,8 @@ def _hull_pass_bins(
         prrow[q2] = rad
         cc += cross & (v >= lj) & (v <= hj)
         q2 += cross
-        # every slab's interval is binned, weighted by ``cross``, without a branch (as :func:`_interval`)
-        ro = max(rad - absL[j, d] * hd, 0.0)
-        iv = invL[j, d]
-        t0 = (lj - v - ro) * iv
-        t1 = (hj - v + ro) * iv
-        wide = nb * (iv == 0.0)  # L_jd = 0 (t0 = t1 = 0): no information, every bin
-        u0 = (min(t0, t1) + hd) * iw - 1e-6 - wide
-        u1 = (max(t0, t1) + hd) * iw + 1e-6 + wide
-        # np.int64, not int(): numba's int() of a float costs several times more here
-        b0 = np.int64(min(max(u0, 0.0), nb - 1.0))
-        b1 = np.int64(min(max(u1, 0.0), nb - 1.0))
+        # every slab's interval is binned, weighted by ``cross``, without a branch
+        b0, b1 = _bins(absL, invL, j, v, rad, lj, hj, d, hd, nb, iw)
         hs[b0] += cross
         he[b1] += cross
     return f, q2, cc, nb
@@ -340,15 +347,9 @@ def _bin_intervals(absL, invL, lo, hi, prow, pvrow, prrow, p, d, hd, hs, he):  #
         lj = lo[j]
         hj = hi[j]
         cc += (v >= lj) & (v <= hj)
-        ro = max(rad - absL[j, d] * hd, 0.0)
-        iv = invL[j, d]
-        t0 = (lj - v - ro) * iv
-        t1 = (hj - v + ro) * iv
-        wide = nb * (iv == 0.0)
-        u0 = (min(t0, t1) + hd) * iw - 1e-6 - wide
-        u1 = (max(t0, t1) + hd) * iw + 1e-6 + wide
-        hs[np.int64(min(max(u0, 0.0), nb - 1.0))] += 1
-        he[np.int64(min(max(u1, 0.0), nb - 1.0))] += 1
+        b0, b1 = _bins(absL, invL, j, v, rad, lj, hj, d, hd, nb, iw)
+        hs[b0] += 1
+        he[b1] += 1
     return cc, nb
 
 
