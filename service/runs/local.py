@@ -114,6 +114,12 @@ def ingest(
     return store, note
 
 
+def finished_before(store: JobStore) -> bool:
+    """Whether the job was finished earlier with these inputs and parameters (every tile done and
+    the previews made): ``maxfs run`` then has nothing to do."""
+    return bool(store.done_grid().all()) and (store.path / "previews").is_dir()
+
+
 def store_images(
     ds: Dataset, store: JobStore, indices: Iterable[int], threads: int, stop: threading.Event | None = None
 ) -> None:
@@ -251,8 +257,8 @@ async def _ingest_and_run(
             tm.add("open or create the store", time.perf_counter() - t0)
         if note and on_note:
             on_note(note)
-        if store.done_grid().all() and (out / "previews").is_dir():
-            return store, None  # finished earlier with these inputs and parameters
+        if finished_before(store):
+            return store, None
         t0 = time.perf_counter()
         dc = await (starting or start_cluster(settings, log_dir=logs))
         starting = None
@@ -389,8 +395,8 @@ def run_folder(
             store, note = ingest(ds, out, params, overwrite=overwrite, copy_images=False, tile_auto=tile_auto)
         if note and on_note:
             on_note(note)
-        if store.done_grid().all() and (out / "previews").is_dir():
-            return store, load_record(out)  # finished earlier with these inputs and parameters
+        if finished_before(store):
+            return store, load_record(out)
         with tm.phase("imports"):  # the solver (numba) only now: a finished job never loads it
             from maxfs.service.runs.inprocess import run_in_process
             from maxfs.worker.task import load_kernels
