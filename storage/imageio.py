@@ -245,6 +245,8 @@ def load_npy(path: Path, what: str = "") -> NDArray:
         raise InvalidInputError(f"{what} is not a readable NPY file ({e})") from None
 
 
-def encode_png(arr: NDArray) -> bytes:
-    """PNG bytes of an (H, W) or (H, W, 3) uint8/uint16 array."""
-    return bytes(imagecodecs.png_encode(np.ascontiguousarray(arr)))
+def encode_png(arr: NDArray, level: int | None = None) -> bytes:
+    """PNG bytes of an (H, W) or (H, W, 3) uint8/uint16 array; ``level``: zlib's compression
+    level (default: the encoder's)."""
+    a = np.ascontiguousarray(arr)
+    return bytes(imagecodecs.png_encode(a) if level is None else imagecodecs.png_encode(a, level=level))

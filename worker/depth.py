@@ -458,8 +458,16 @@ def discontinuities(
 def relief_rgb(depth: NDArray[np.floating], light: tuple[float, float, float] = (-1.0, 1.0, 1.0)) -> NDArray:
     """A shaded relief of a depth map (uint8 grey, black outside): Lambertian shading of the depth's own
     normals under a light from the upper left, which shows shape better than a colour scale of depth."""
-    z = np.asarray(depth, dtype=np.float64)
-    dom = np.isfinite(z)
+    full = np.asarray(depth, dtype=np.float64)
+    img = np.zeros(full.shape, dtype=np.uint8)
+    dom = np.isfinite(full)
+    rows, cols = np.flatnonzero(dom.any(axis=1)), np.flatnonzero(dom.any(axis=0))
+    if not rows.size:
+        return img
+    # computed inside the domain's bounding box only: every difference that leaves the domain is
+    # NaN (one-sided), as the box's NaN padding makes it, so the pixels are those of the whole image
+    box = slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1)
+    z, dom = full[box], dom[box]
     zf = np.where(dom, z, 0.0)
     # central differences inside, one-sided at the domain's edge
     dzdc = np.zeros_like(zf)
@@ -482,6 +490,7 @@ def relief_rgb(depth: NDArray[np.floating], light: tuple[float, float, float] = 
     L = L / np.linalg.norm(L)
     shade = (nx * L[0] + ny * L[1] + L[2]) / np.sqrt(nx**2 + ny**2 + 1.0)
     v = np.clip(0.15 + 0.85 * shade, 0.0, 1.0)
-    img = np.round(255 * v).astype(np.uint8)
-    img[~dom] = 0
+    part = np.round(255 * v).astype(np.uint8)
+    part[~dom] = 0
+    img[box] = part
     return img

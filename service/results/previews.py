@@ -8,23 +8,55 @@ from numpy.typing import NDArray
 from maxfs.storage.outputs import PREVIEW_NAMES, TILE_OUTPUTS
 
 
+def box(ok: NDArray[np.bool_]) -> tuple[slice, ...] | None:
+    """The bounding box of ``ok`` over its first two axes (rows, columns; any further axis counts
+    where any of it is ``ok``) as slices, or None when nothing is ``ok``; fewer than two axes: the
+    whole array. A preview is computed inside it only (an object on 5 % of the image costs 5 % of
+    the float passes) and is 0 outside, exactly as computed everywhere."""
+    if ok.ndim < 2:
+        return (Ellipsis,)
+    if ok.ndim > 2:
+        ok = ok.reshape(*ok.shape[:2], -1).any(axis=2)
+    rows, cols = np.flatnonzero(ok.any(axis=1)), np.flatnonzero(ok.any(axis=0))
+    if not rows.size:
+        return None
+    return slice(int(rows[0]), int(rows[-1]) + 1), slice(int(cols[0]), int(cols[-1]) + 1)
+
+
 def normal_rgb(normal: NDArray[np.floating]) -> NDArray[np.uint8]:
     """255 * (n + 1) / 2 for all three components (the field's convention); black where undefined."""
-    n = np.nan_to_num(np.asarray(normal, dtype=np.float64), nan=0.0)
+    normal = np.asarray(normal)
+    out = np.zeros(normal.shape, dtype=np.uint8)
+    defined = np.isfinite(normal[..., 0])
+    b = box(defined)
+    if b is None:
+        return out
+    n = np.nan_to_num(np.asarray(normal[b], dtype=np.float64), nan=0.0)
     rgb = (n + 1.0) / 2.0
-    rgb[~np.isfinite(np.asarray(normal)[..., 0])] = 0.0
-    return np.clip(np.round(255 * rgb), 0, 255).astype(np.uint8)
+    rgb[~defined[b]] = 0.0
+    out[b] = np.clip(np.round(255 * rgb), 0, 255).astype(np.uint8)
+    return out
 
 
 def scale_to_uint8(values: NDArray[np.floating], top: float | None = None) -> NDArray[np.uint8]:
     """Linear 0..top to 0..255 (``top`` defaults to the 99.5th percentile of positive values)."""
-    v = np.nan_to_num(np.asarray(values, dtype=np.float64))
+    values = np.asarray(values)
+    out = np.zeros(values.shape, dtype=np.uint8)
+    pos = values > 0  # where nan_to_num(values) > 0; every other value maps to 0
+    b = box(pos)
+    if b is None:
+        return out
+    v = np.nan_to_num(np.asarray(values[b], dtype=np.float64))
     if top is None:
-        pos = v[v > 0]
-        top = float(np.percentile(pos, 99.5)) if pos.size else 1.0
-    return np.clip(np.round(255 * v / max(top, 1e-12)), 0, 255).astype(np.uint8)
+        p = v[v > 0]
+        top = float(np.percentile(p, 99.5)) if p.size else 1.0
+    out[b] = np.clip(np.round(255 * v / max(top, 1e-12)), 0, 255).astype(np.uint8)
+    return out
 
 
+#: zlib level of the preview files ``maxfs run`` writes: level 1 encodes them about twice as fast
+#: as the default (6) for files about 25 % larger (a 512 x 612 normal map: 28 kB instead of 22 kB).
+PNG_LEVEL = 1
 #: Previews rendered from the tiles' outputs (the table's previewable tile outputs).
 PREVIEWS = tuple(o.name for o in TILE_OUTPUTS if o.preview)
 #: Output arrays the previews read (never ``inliers``, which is k times larger; the albedo

@@ -113,6 +113,7 @@ def write_depth(
     ``distance``, see :data:`storage.options.SOLVE_OPTIONS`); those not given are the job's. Returns None
     (and writes nothing) for ``depth="none"``.
     """
+    from maxfs.service.results.previews import PNG_LEVEL
     from maxfs.storage.options import check_depth_options
     from maxfs.worker.depth import integrate, relief_rgb
 
@@ -143,7 +144,7 @@ def write_depth(
     store.write_depth(res.depth, res.attrs() | {"long_name": what})
     d = store.path / "previews"
     d.mkdir(exist_ok=True)
-    (d / DEPTH_PREVIEW).write_bytes(encode_png(relief_rgb(res.depth)))
+    (d / DEPTH_PREVIEW).write_bytes(encode_png(relief_rgb(res.depth), PNG_LEVEL))
     return res
 
 

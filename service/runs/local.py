@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from maxfs.service.results.previews import PREVIEW_INPUTS, PREVIEWS, render, with_legend
+from maxfs.service.results.previews import PNG_LEVEL, PREVIEW_INPUTS, PREVIEWS, render, with_legend
 from maxfs.service.runs.progress import ProgressFn
 from maxfs.service.runs.timings import Timings
 from maxfs.service.settings import Settings, cluster_settings, runs_in_process
@@ -444,6 +444,8 @@ def write_previews(store: JobStore, arrays: dict[str, NDArray] | None = None) ->
     paths = []
     for name in PREVIEWS:
         p = d / f"{name}.png"
-        p.write_bytes(encode_png(with_legend(name, render(name, arrays, store.spec.k), store.spec.k)))
+        p.write_bytes(
+            encode_png(with_legend(name, render(name, arrays, store.spec.k), store.spec.k), PNG_LEVEL)
+        )
         paths.append(p)
     return paths
