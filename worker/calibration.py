@@ -159,22 +159,26 @@ def _fit_images(M: NDArray, W: NDArray, B: NDArray) -> NDArray:
     return _solve3((W @ BB).reshape(-1, 3, 3), (W * M) @ B)
 
 
-def _robust_scale(r: NDArray, W: NDArray) -> float:
-    return float(1.4826 * np.median(np.abs(r[W > 0])))
+def _robust_scale(r: NDArray, on: NDArray[np.bool_]) -> float:
+    """1.4826 times the median absolute ``r`` over the entries ``on`` (``W > 0``)."""
+    return float(1.4826 * np.median(np.abs(r[on])))
 
 
-def _trimmed(M: NDArray, W: NDArray, S: NDArray, rounds: int = 3) -> tuple[NDArray, NDArray, float]:
+def _trimmed(
+    M: NDArray, W: NDArray, S: NDArray, rounds: int = 3, sigma: bool = True
+) -> tuple[NDArray, NDArray, float | None]:
     """Fit ``B`` to fixed lights ``S``, dropping entries beyond 3 robust sigmas (specular lobes,
     cast shadows), refit; returns the pixel fits, the weights kept and the robust sigma (over all
     of ``W``: a median needs no trimming, and a sigma of the kept entries alone would shrink with
-    every round)."""
+    every round; None without ``sigma``, for a caller that uses only the fits)."""
     w = W.copy()
+    on = W > 0
     for _ in range(rounds):
         B = _fit_pixels(M, w, S)
         r = M - S @ B.T
-        w = W * (np.abs(r) <= 3.0 * max(_robust_scale(r, W), 1e-12))
+        w = W * (np.abs(r) <= 3.0 * max(_robust_scale(r, on), 1e-12))
     B = _fit_pixels(M, w, S)
-    return B, w, _robust_scale(M - S @ B.T, W)
+    return B, w, _robust_scale(M - S @ B.T, on) if sigma else None
 
 
 def _prepare(grey: NDArray, usable: NDArray) -> tuple[NDArray, NDArray] | None:
@@ -200,7 +204,7 @@ def _gains(M: NDArray, W: NDArray, L: NDArray, rounds: int = 6) -> NDArray:
     pixels' fit with lights ``g_i L_i`` and each image's least-squares gain over its kept entries."""
     g = np.ones(len(L))
     for _ in range(rounds):
-        B, w, _ = _trimmed(M, W, L * g[:, None], rounds=1)
+        B, w, _ = _trimmed(M, W, L * g[:, None], rounds=1, sigma=False)
         pred = L @ B.T
         g = (w * M * pred).sum(axis=1) / np.maximum((w * pred * pred).sum(axis=1), 1e-300)
         g = np.where(g > 0, g, np.nan)
@@ -273,8 +277,14 @@ def flip_integrability(normal: NDArray[np.floating]) -> Finding:
     """A sign test of the normals' curl against that of their y-mirror (see the module docstring):
     ``z = (share - 1/2) * 2 sqrt(N)`` over the N cells, ``share`` those where the mirror
     integrates better."""
-    n = np.asarray(normal, dtype=np.float64)
+    n = np.asarray(normal)
     ok = np.isfinite(n).all(axis=2)
+    # the cells lie within the bounding box of the finite normals: the same cells, in the same order
+    rows, cols = np.flatnonzero(ok.any(axis=1)), np.flatnonzero(ok.any(axis=0))
+    if rows.size:
+        box = slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1)
+        n, ok = n[box], ok[box]
+    n = np.asarray(n, dtype=np.float64)
     nz = np.where(ok, n[..., 2], 1.0)
     ok &= np.abs(nz) >= MIN_NZ  # |n_z|: normals all facing away are another check's business
     nz = np.where(ok, nz, 1.0)
