@@ -152,6 +152,25 @@ def test_multigrid_cg_equals_a_direct_sparse_solve() -> None:
         assert 0 < its < 60, its
 
 
+def test_dense_coarsest_factor_equals_the_sparse_one() -> None:
+    # the coarsest level is factored by numpy when small (no scipy import on a run), by scipy's sparse
+    # LU when large: the same pieces held, the same solves, on levels with several pieces
+    from maxfs.worker.depth_solver import Multigrid, _factor, _sparse_factor
+
+    for seed in range(3):
+        dom, wh, wv = _weighted(seed, (80, 96))
+        up, down = grid_links(dom)
+        for lev in Multigrid(dom, wh, wv, up, down).levels:
+            n = lev.diag.size
+            rows = np.repeat(np.arange(n), np.diff(lev.indptr))
+            A = scipy.sparse.csr_matrix((lev.val, lev.idx, lev.indptr), shape=(n, n))
+            _, lab = scipy.sparse.csgraph.connected_components(A, directed=False)
+            b = np.random.default_rng(seed).standard_normal(n)
+            b -= (np.bincount(lab, weights=b) / np.bincount(lab))[lab]
+            dense, sparse = _factor(lev)(b), _sparse_factor(lev, rows)(b)
+            np.testing.assert_allclose(dense, sparse, rtol=1e-9, atol=1e-9 * np.abs(sparse).max())
+
+
 def test_ls_equals_the_direct_solve_within_the_solver_tolerance() -> None:
     n, mask = _two_pieces()
     want = _direct_ls(n, mask)

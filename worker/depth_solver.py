@@ -575,8 +575,46 @@ class Multigrid:
             _coarse_gs(*m, lev.b, lev.x, True)
 
 
+#: Coarsest levels of at most this many nodes are factored densely by numpy (an inverse: 1.3 MB at 400
+#: nodes), larger ones (coarsening that stalled) by scipy's sparse LU; both solve the same system.
+DENSE_COARSEST = 1000
+
+
 def _factor(lev: _Level):
     """A direct solve of the coarsest level, one node of each connected piece held at 0."""
+    n = lev.diag.size
+    rows = np.repeat(np.arange(n), np.diff(lev.indptr))
+    if n > DENSE_COARSEST:
+        return _sparse_factor(lev, rows)
+    # connected pieces by the stored edges (as scipy.sparse.csgraph's connected_components): label
+    # propagation to the smallest label of each piece, whose node is the one held
+    lab = np.arange(n)
+    while True:
+        low = lab.copy()
+        np.minimum.at(low, rows, lab[lev.idx])
+        np.minimum.at(low, lev.idx, lab[rows])
+        low = low[low]  # pointer jumping: a path of n nodes settles in about log2(n) rounds
+        if np.array_equal(low, lab):
+            break
+        lab = low
+    hold = lab == np.arange(n)
+    hold |= lev.diag == 0.0
+    A = np.zeros((n, n))
+    np.add.at(A, (rows, lev.idx), lev.val)
+    M = np.diag(lev.diag) - A
+    M[hold, :] = 0.0
+    M[:, hold] = 0.0
+    M[hold, hold] = 1.0
+    inv = np.linalg.inv(M)
+
+    def direct(b: NDArray) -> NDArray:
+        return inv @ np.where(hold, 0.0, b)
+
+    return direct
+
+
+def _sparse_factor(lev: _Level, rows: NDArray):
+    """:func:`_factor` for a large coarsest level, by scipy's sparse LU."""
     import scipy.sparse
     import scipy.sparse.csgraph
     import scipy.sparse.linalg
