@@ -19,7 +19,6 @@ import re
 from pathlib import Path
 
 import numpy as np
-import tifffile
 from numpy.typing import NDArray
 
 from maxfs.storage.datasets import (
@@ -93,6 +92,8 @@ def stack_file(folder: Path) -> Path | None:
         p for p in folder.iterdir() if p.suffix.lower() in (".tif", ".tiff") and not _not_an_image(p.name)
     ]
     if len(tifs) == 1 and lights_file(folder) is not None:
+        import tifffile  # only for TIFF input (90 ms to import)
+
         with tifffile.TiffFile(tifs[0]) as t:
             if len(t.pages) >= 3:
                 return tifs[0]
@@ -101,6 +102,8 @@ def stack_file(folder: Path) -> Path | None:
 
 def tiff_stack(folder: Path, path: Path) -> Dataset:
     try:
+        import tifffile  # only for TIFF input (90 ms to import)
+
         with tifffile.TiffFile(path) as t:
             k = len(t.pages)
     except Exception as e:  # tifffile raises several types for bad files
@@ -110,6 +113,8 @@ def tiff_stack(folder: Path, path: Path) -> Dataset:
     lights, inten, used = _read_lights(folder, k)
 
     def page(i: int) -> NDArray:
+        import tifffile  # only for TIFF input (90 ms to import)
+
         with tifffile.TiffFile(path) as t:
             arr = t.pages[i].asarray()
         if arr.ndim == 3 and arr.shape[2] == 4:

@@ -14,7 +14,6 @@ from pathlib import Path
 
 import imagecodecs
 import numpy as np
-import tifffile
 from numpy.typing import NDArray
 from PIL import Image, UnidentifiedImageError
 
@@ -116,6 +115,8 @@ def probe_bytes(data: bytes, what: str = "image") -> ImageHeader:
             n = h * w * _PNG_CHANNELS[colour] * dtype.itemsize
             return ImageHeader("PNG", _normal_shape(raw), dtype, 1, n)
         if data[:4] in TIFF_MAGICS:
+            import tifffile  # only for TIFF input (90 ms to import)
+
             with tifffile.TiffFile(io.BytesIO(data)) as tif:
                 pages = len(tif.pages)
                 page = tif.pages.first
@@ -173,6 +174,8 @@ def decode_checked(
         if head.format == "PNG":
             arr = imagecodecs.png_decode(data)
         elif head.format == "TIFF":
+            import tifffile  # only for TIFF input (90 ms to import)
+
             with tifffile.TiffFile(io.BytesIO(data)) as tif:
                 arr = tif.pages.first.asarray()
         else:
