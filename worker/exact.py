@@ -35,7 +35,10 @@ box already hold none, from the constraints the algorithm was moving between)
 names the slabs one of which a better point must miss, and the LP runs again
 without each in turn. The LP widens every slab and the box by a margin far
 above rounding and calls near ties undecided (the box is then split as before),
-so it prunes only boxes that hold no better point.
+so it prunes only boxes that hold no better point. Its point lies on the widened
+faces, outside the slabs, so where it fails the recount the LP runs again with
+the slabs and box narrowed by the margin: a point of that one lies inside them
+(before, such boxes were split as undecided: 7.5 k of 18.5 k LPs on the cat crop).
 
 A box with at most three crossing slabs is solved exactly by enumerating the
 vertices of its crossing planes and faces, as is a box shrunk below ``hmin``,
@@ -517,7 +520,9 @@ def _lp_plane(A2, b2, n2, ulo, uhi, vlo, vhi, u, v, T):  # pragma: no cover - nu
 
 
 @njit(cache=True, nogil=True, _nrt=False)
-def _lp_box(L, lo, hi, row, pv, pr, p, skip, c, h, H, hb, hq, A2, b2, x, core):  # pragma: no cover - numba
+def _lp_box(
+    L, lo, hi, row, pv, pr, p, skip, c, h, H, hb, hq, A2, b2, x, core, slack=_LP_SLACK
+):  # pragma: no cover - numba
     """Does the box ``c +- h`` hold a point inside every slab of ``row[:p]`` but those
     whose position ``q`` has ``skip[q]``?
 
@@ -538,7 +543,7 @@ def _lp_box(L, lo, hi, row, pv, pr, p, skip, c, h, H, hb, hq, A2, b2, x, core): 
     T = 0.0
     for d in range(3):
         T = max(T, abs(c[d]) + h[d])
-    sl = _LP_SLACK * T
+    sl = slack * T
     n = 0
     for q in range(p):
         if skip[q]:
@@ -639,13 +644,24 @@ def _lp_search(L, lo, hi, idx, m, row, pv, pr, p, f, c, h, best, bp, lpw):  # pr
     t = 0
     undecided = False
     while True:
-        st = _lp_box(L, lo, hi, row, pv, pr, p, skip, c, h, H, hb, hq, A2, b2, x, cores[t])
+        st = _lp_box(L, lo, hi, row, pv, pr, p, skip, c, h, H, hb, hq, A2, b2, x, cores[t], _LP_SLACK)
         if st == 1:
             for d in range(3):
                 x[d] = min(max(x[d], c[d] - h[d]), c[d] + h[d])
             nb = _claim(L, lo, hi, idx, m, x[0], x[1], x[2], best, bp)
             if nb > best:
                 return np.int64(1), nb
+            # the point lies on the widened faces, outside the slabs: again with them narrowed
+            # by the margin, whose point (if any) lies inside them
+            if (
+                _lp_box(L, lo, hi, row, pv, pr, p, skip, c, h, H, hb, hq, A2, b2, x, cores[t], -_LP_SLACK)
+                == 1
+            ):
+                for d in range(3):
+                    x[d] = min(max(x[d], c[d] - h[d]), c[d] + h[d])
+                nb = _claim(L, lo, hi, idx, m, x[0], x[1], x[2], best, bp)
+                if nb > best:
+                    return np.int64(1), nb
             undecided = True
         elif st == -1:
             undecided = True
