@@ -431,7 +431,7 @@ def _sweep(bs, bneg, g):  # pragma: no cover - numba
 
 
 _LP_GAP = 2  # LPs decide boxes at most this many slabs from being pruned (up to 4 ** (gap - 1) LPs) ...
-_LP_GAP_P = 12  # ... and above one slab only with at most this many crossing slabs (an LP costs O(p) or more)
+_LP_GAP_P = 48  # ... and above one slab only with at most this many crossing slabs (an LP costs O(p) or more)
 _LP_PAR = 1e-6  # an LP row with coefficients below this (relative) is "parallel": decided by its constant
 _LP_SLACK = (
     1e-6  # the LP's slabs and box are widened by this times the box's scale: it only prunes by a margin
