@@ -10,6 +10,7 @@ import pytest
 
 from maxfs.worker import synthetic
 from maxfs.worker.exact import (
+    _LP_GAP,
     _LP_SLACK,
     _NONE,
     _hull_pass,
@@ -232,8 +233,8 @@ def _lp_work(k: int) -> tuple:
         np.empty(2 * k + 2),
         np.zeros(k, np.bool_),
         np.empty(3),
-        np.zeros(2, np.int64),
-        np.empty((3, 4), np.int64),
+        np.zeros(_LP_GAP, np.int64),
+        np.empty((_LP_GAP + 1, 4), np.int64),
         np.empty((2 * k + 6, 3)),
         np.empty(2 * k + 6),
         np.empty(3),

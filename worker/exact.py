@@ -29,7 +29,8 @@ A box **one slab** from being pruned needs a point inside every crossing slab:
 a small LP (Seidel's incremental algorithm in 3-D, only the slab faces that
 cut the box) decides it, a point (recounted, a new incumbent) or none (pruned),
 where bisection would split it again and again along the faces. A box **two
-slabs** away with few crossing slabs (``_LP_GAP_P``) is decided the same way:
+slabs** away with few crossing slabs (``_LP_GAP_P``), or three away with fewer
+(``_LP_GAP3_P``), is decided the same way:
 where the LP has no point, its infeasible core (at most four slabs that with the
 box already hold none, from the constraints the algorithm was moving between)
 names the slabs one of which a better point must miss, and the LP runs again
@@ -430,8 +431,9 @@ def _sweep(bs, bneg, g):  # pragma: no cover - numba
     return True, smin, smax
 
 
-_LP_GAP = 2  # LPs decide boxes at most this many slabs from being pruned (up to 4 ** (gap - 1) LPs) ...
-_LP_GAP_P = 48  # ... and above one slab only with at most this many crossing slabs (an LP costs O(p) or more)
+_LP_GAP = 3  # LPs decide boxes at most this many slabs from being pruned (up to 4 ** (gap - 1) LPs) ...
+_LP_GAP_P = 48  # ... two slabs only with at most this many crossing slabs (an LP costs O(p) or more) ...
+_LP_GAP3_P = 12  # ... and three only with at most this many
 _LP_PAR = 1e-6  # an LP row with coefficients below this (relative) is "parallel": decided by its constant
 _LP_SLACK = (
     1e-6  # the LP's slabs and box are widened by this times the box's scale: it only prunes by a margin
@@ -848,7 +850,8 @@ def _bnb(
                 dc = 0.0
                 dh = 0.0
             st = np.int64(-1)
-            while best < f + p <= best + (_LP_GAP if p <= _LP_GAP_P else 1):
+            gap = _LP_GAP if p <= _LP_GAP3_P else (2 if p <= _LP_GAP_P else 1)
+            while best < f + p <= best + gap:
                 st, best = _lp_search(L, lo, hi, idx, m, prow, pvrow, prrow, p, f, c, h, best, bp, lpw)
                 if st != 1:
                     break
