@@ -10,11 +10,13 @@ import pytest
 
 from maxfs.worker import synthetic
 from maxfs.worker.exact import (
+    _LP_GAP,
     _LP_SLACK,
     _NONE,
     _hull_pass,
     _hull_pass_bins,
     _lp_box,
+    _lp_search,
     _sweep,
     _sweep_bins,
     above_index,
@@ -219,6 +221,67 @@ def test_box_lp_finds_a_point_or_a_core_of_at_most_four_slabs_without_one() -> N
             assert 1 <= q.size <= 4 and not skip[q].any()
             assert not _box_lp_feasible(L[q], lo[q], hi[q], c, h), f"trial {trial}: core {q} holds a point"
     assert min(seen.values()) > 40  # both answers were exercised
+
+
+def _lp_work(k: int) -> tuple:
+    """The LPs' work arrays, as :func:`solve_exact` allocates them."""
+    return (
+        np.empty((2 * k, 3)),
+        np.empty(2 * k),
+        np.empty(2 * k, np.int64),
+        np.empty((2 * k + 2, 2)),
+        np.empty(2 * k + 2),
+        np.zeros(k, np.bool_),
+        np.empty(3),
+        np.zeros(_LP_GAP, np.int64),
+        np.empty((_LP_GAP + 1, 4), np.int64),
+        np.empty((2 * k + 6, 3)),
+        np.empty(2 * k + 6),
+        np.empty(3),
+        np.empty(3),
+    )
+
+
+def test_lp_search_claims_a_point_where_the_slabs_meet_off_the_box_centre() -> None:
+    """A box one slab from being pruned whose crossing slabs all meet (with room) at a point
+    away from its centre: the LP's point lies on the widened faces, outside the slabs, so
+    the search asks again with them narrowed and claims a point inside every one (it used
+    to call the box undecided and split it). Where the slabs hold no common point in the
+    box (HiGHS), nothing is claimed."""
+    rng = np.random.default_rng(11)
+    seen = {-1: 0, 0: 0, 1: 0}
+    for trial in range(200):
+        p = int(rng.integers(4, 13))
+        L = rng.normal(size=(p, 3))
+        L /= np.linalg.norm(L, axis=1, keepdims=True)
+        c = rng.normal(size=3) * 3
+        h = rng.uniform(0.5, 2.0, 3)
+        x0 = c + rng.uniform(-0.9, 0.9, 3) * h
+        w = rng.uniform(0.02, 0.3, p)
+        mid = L @ x0 + rng.uniform(-0.5, 0.5, p) * w + rng.normal(size=p) * (rng.random(p) < 0.15) * 1.0
+        lo, hi = mid - w, mid + w
+        v = L @ c
+        rad = np.abs(L) @ h
+        crossing = ((v + rad >= lo) & (v - rad <= hi) & ~((v - rad >= lo) & (v + rad <= hi))).all()
+        if not crossing:
+            continue
+        idx = np.arange(p, dtype=np.uint32)
+        bp = np.zeros(3)
+        st, best = _lp_search(
+            L, lo, hi, idx, p, idx.copy(), v, rad, p, 0, c.copy(), h.copy(), p - 1, bp, _lp_work(p)
+        )
+        truth = _box_lp_feasible(L, lo, hi, c, h)
+        seen[int(st)] += 1
+        if st == 1:
+            assert best == p and truth
+            assert (np.abs(bp - c) <= h).all()
+            t = L @ bp
+            assert ((t >= lo) & (t <= hi)).all(), f"trial {trial}"
+        elif st == 0:
+            assert not truth, f"trial {trial}: pruned where HiGHS finds a point"
+        else:  # undecided only at a near tie: the slabs narrowed by the margin hold no point
+            assert not _box_lp_feasible(L, lo + 1e-5, hi - 1e-5, c, h), f"trial {trial}: undecided with room"
+    assert seen[1] > 40 and seen[0] > 10
 
 
 # --- optimal counts on the realistic scene -----------------------------------------

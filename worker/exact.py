@@ -29,13 +29,17 @@ A box **one slab** from being pruned needs a point inside every crossing slab:
 a small LP (Seidel's incremental algorithm in 3-D, only the slab faces that
 cut the box) decides it, a point (recounted, a new incumbent) or none (pruned),
 where bisection would split it again and again along the faces. A box **two
-slabs** away with few crossing slabs (``_LP_GAP_P``) is decided the same way:
+slabs** away with few crossing slabs (``_LP_GAP_P``), or three away with fewer
+(``_LP_GAP3_P``), is decided the same way:
 where the LP has no point, its infeasible core (at most four slabs that with the
 box already hold none, from the constraints the algorithm was moving between)
 names the slabs one of which a better point must miss, and the LP runs again
 without each in turn. The LP widens every slab and the box by a margin far
 above rounding and calls near ties undecided (the box is then split as before),
-so it prunes only boxes that hold no better point.
+so it prunes only boxes that hold no better point. Its point lies on the widened
+faces, outside the slabs, so where it fails the recount the LP runs again with
+the slabs and box narrowed by the margin: a point of that one lies inside them
+(before, such boxes were split as undecided: 7.5 k of 18.5 k LPs on the cat crop).
 
 A box with at most three crossing slabs is solved exactly by enumerating the
 vertices of its crossing planes and faces, as is a box shrunk below ``hmin``,
@@ -427,8 +431,9 @@ def _sweep(bs, bneg, g):  # pragma: no cover - numba
     return True, smin, smax
 
 
-_LP_GAP = 2  # LPs decide boxes at most this many slabs from being pruned (up to 4 ** (gap - 1) LPs) ...
-_LP_GAP_P = 12  # ... and above one slab only with at most this many crossing slabs (an LP costs O(p) or more)
+_LP_GAP = 3  # LPs decide boxes at most this many slabs from being pruned (up to 4 ** (gap - 1) LPs) ...
+_LP_GAP_P = 48  # ... two slabs only with at most this many crossing slabs (an LP costs O(p) or more) ...
+_LP_GAP3_P = 12  # ... and three only with at most this many
 _LP_PAR = 1e-6  # an LP row with coefficients below this (relative) is "parallel": decided by its constant
 _LP_SLACK = (
     1e-6  # the LP's slabs and box are widened by this times the box's scale: it only prunes by a margin
@@ -517,7 +522,9 @@ def _lp_plane(A2, b2, n2, ulo, uhi, vlo, vhi, u, v, T):  # pragma: no cover - nu
 
 
 @njit(cache=True, nogil=True, _nrt=False)
-def _lp_box(L, lo, hi, row, pv, pr, p, skip, c, h, H, hb, hq, A2, b2, x, core):  # pragma: no cover - numba
+def _lp_box(
+    L, lo, hi, row, pv, pr, p, skip, c, h, H, hb, hq, A2, b2, x, core, slack=_LP_SLACK
+):  # pragma: no cover - numba
     """Does the box ``c +- h`` hold a point inside every slab of ``row[:p]`` but those
     whose position ``q`` has ``skip[q]``?
 
@@ -538,7 +545,7 @@ def _lp_box(L, lo, hi, row, pv, pr, p, skip, c, h, H, hb, hq, A2, b2, x, core): 
     T = 0.0
     for d in range(3):
         T = max(T, abs(c[d]) + h[d])
-    sl = _LP_SLACK * T
+    sl = slack * T
     n = 0
     for q in range(p):
         if skip[q]:
@@ -639,13 +646,24 @@ def _lp_search(L, lo, hi, idx, m, row, pv, pr, p, f, c, h, best, bp, lpw):  # pr
     t = 0
     undecided = False
     while True:
-        st = _lp_box(L, lo, hi, row, pv, pr, p, skip, c, h, H, hb, hq, A2, b2, x, cores[t])
+        st = _lp_box(L, lo, hi, row, pv, pr, p, skip, c, h, H, hb, hq, A2, b2, x, cores[t], _LP_SLACK)
         if st == 1:
             for d in range(3):
                 x[d] = min(max(x[d], c[d] - h[d]), c[d] + h[d])
             nb = _claim(L, lo, hi, idx, m, x[0], x[1], x[2], best, bp)
             if nb > best:
                 return np.int64(1), nb
+            # the point lies on the widened faces, outside the slabs: again with them narrowed
+            # by the margin, whose point (if any) lies inside them
+            if (
+                _lp_box(L, lo, hi, row, pv, pr, p, skip, c, h, H, hb, hq, A2, b2, x, cores[t], -_LP_SLACK)
+                == 1
+            ):
+                for d in range(3):
+                    x[d] = min(max(x[d], c[d] - h[d]), c[d] + h[d])
+                nb = _claim(L, lo, hi, idx, m, x[0], x[1], x[2], best, bp)
+                if nb > best:
+                    return np.int64(1), nb
             undecided = True
         elif st == -1:
             undecided = True
@@ -832,7 +850,8 @@ def _bnb(
                 dc = 0.0
                 dh = 0.0
             st = np.int64(-1)
-            while best < f + p <= best + (_LP_GAP if p <= _LP_GAP_P else 1):
+            gap = _LP_GAP if p <= _LP_GAP3_P else (2 if p <= _LP_GAP_P else 1)
+            while best < f + p <= best + gap:
                 st, best = _lp_search(L, lo, hi, idx, m, prow, pvrow, prrow, p, f, c, h, best, bp, lpw)
                 if st != 1:
                     break
