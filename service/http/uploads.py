@@ -19,6 +19,7 @@ from maxfs.service.http.auth import user_of
 from maxfs.service.http.guards import check_declared, is_raw, mask_of, read_body, stage_body
 from maxfs.service.http.jobs import TEMP_PREFIX, JobManager
 from maxfs.service.settings import Settings
+from maxfs.storage.digests import ArrayHasher
 from maxfs.storage.errors import ConflictError, InvalidInputError, NotFoundError
 from maxfs.storage.layout import JobSpec, JobStore
 
@@ -73,37 +74,59 @@ class Uploads:
         declared = request.headers.get("content-length", "")
         staged = min(limit, int(declared)) if declared.isdigit() else limit
         with self.m.uploads.take(user.name), self.m.disk.hold(spec.image_nbytes + staged, f"image {index}"):
+            if not raw:
+                await self._encoded_image(request, job_id, index, spec, limit)
+                return
+            # the digest is made as the body arrives (the body is the image's little-endian
+            # bytes, what the digest reads), not from a second pass over the stored bands
+            hasher = ArrayHasher(spec.image_shape, spec.dtype)
             part = await stage_body(
-                request, self.m.job_dir(job_id), f"{TEMP_PREFIX}upload-{index}-", limit, s.upload_idle_timeout
+                request,
+                self.m.job_dir(job_id),
+                f"{TEMP_PREFIX}upload-{index}-",
+                limit,
+                s.upload_idle_timeout,
+                feed=hasher.h.update,
             )
             try:
                 size = part.stat().st_size
-                if raw:
-                    if size != spec.image_nbytes:
-                        raise InvalidInputError(
-                            f"image {index}: got {size} bytes, expected {spec.image_nbytes} "
-                            f"({' x '.join(map(str, spec.image_shape))} {spec.dtype}, little-endian, "
-                            "row-major); for a PNG or TIFF file send Content-Type: image/png or image/tiff"
-                        )
-
-                    def write(st: JobStore) -> None:
-                        st.write_bands(index, raw_bands(part, spec, st.band_rows))
-
-                else:  # header checked before any pixel is decoded; decoded in a thread
-                    img = await self.m.decoder.decode_file(
-                        part,
-                        f"image {index}",
-                        max_bytes=2 * spec.image_nbytes + (1 << 20),
-                        shape=spec.image_shape,
-                        dtype=spec.dtype,
+                if size != spec.image_nbytes:
+                    raise InvalidInputError(
+                        f"image {index}: got {size} bytes, expected {spec.image_nbytes} "
+                        f"({' x '.join(map(str, spec.image_shape))} {spec.dtype}, little-endian, "
+                        "row-major); for a PNG or TIFF file send Content-Type: image/png or image/tiff"
                     )
+                digest = hasher.digest()
 
-                    def write(st: JobStore) -> None:
-                        st.write_image(index, img)
+                def write(st: JobStore) -> None:
+                    st.write_bands(index, raw_bands(part, spec, st.band_rows), digest=digest)
 
                 await self.m.upload_image(job_id, index, write)
             finally:
                 part.unlink(missing_ok=True)
+
+    async def _encoded_image(
+        self, request: Request, job_id: str, index: int, spec: JobSpec, limit: int
+    ) -> None:
+        """A PNG or TIFF body: read into memory (the decoder wants it whole; at most ``limit``
+        bytes, what a staged file was read back as), its header checked before any pixel is
+        decoded, decoded in a thread, stored."""
+        data = await read_body(request, limit, self.s.upload_idle_timeout)
+        if not self.m.job_dir(job_id).exists():
+            raise FileNotFoundError(job_id)  # deleted while the body arrived (see image())
+        img = await self.m.decoder.decode(
+            data,
+            f"image {index}",
+            max_bytes=2 * spec.image_nbytes + (1 << 20),
+            shape=spec.image_shape,
+            dtype=spec.dtype,
+        )
+        del data
+
+        def write(st: JobStore) -> None:
+            st.write_image(index, img)
+
+        await self.m.upload_image(job_id, index, write)
 
     async def mask(self, request: Request, job_id: str) -> None:
         """Store the object mask from the request body: PNG (non-zero = object) or raw H*W bytes."""
