@@ -61,7 +61,9 @@ import json
 import os
 import threading
 import time
+from collections import deque
 from collections.abc import Iterable, Mapping
+from concurrent.futures import Future
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -541,16 +543,26 @@ class JobStore:
         writer, rows, H = self._shard_writer(), self.band_rows, self.spec.height
         self._set_row("uploaded", i, False)
         h = ArrayHasher(self.spec.image_shape, self.spec.dtype) if digest is None else None
+        # whole shards are encoded on two threads while this one digests, at most two ahead
+        encoding: deque[tuple[tuple[int, ...], Future[bytes | None]]] = deque()
         for band in bands:
             n = band.shape[0]
             if writer is not None and y % rows == 0 and (n == rows or y + n == H):
                 # a whole shard: encoded in one pass (storage.shards), not chunk by chunk
-                writer.write((i, y // rows, *(0,) * (band.ndim - 1)), band[None])
+                coords = (i, y // rows, *(0,) * (band.ndim - 1))
+                encoding.append((coords, writer.submit(coords, band[None])))
+                if len(encoding) > 2:
+                    coords, data = encoding.popleft()
+                    writer.store(coords, data.result())
             else:
                 images[i, y : y + n] = band
             if h is not None:
                 h.update(band)
             y += n
+        while encoding:
+            coords, data = encoding.popleft()
+            assert writer is not None
+            writer.store(coords, data.result())
         if y != self.spec.height:
             raise InvalidInputError(f"image {i}: got {y} rows, the job expects {self.spec.height}")
         self._set_row("input_digests", i, np.frombuffer(digest if h is None else h.digest(), np.uint8))

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import os
 import threading
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -27,6 +28,8 @@ from zarr.core.chunk_key_encodings import DefaultChunkKeyEncoding
 
 #: Index entry of a chunk that is not stored (all fill value), as zarr writes it.
 EMPTY = np.iinfo(np.uint64).max
+#: Threads that encode shards for :meth:`ShardWriter.submit` (shared by every writer of the process).
+ENCODERS = ThreadPoolExecutor(2, thread_name_prefix="maxfs-shards")
 
 
 class ShardWriter:
@@ -106,10 +109,21 @@ class ShardWriter:
         rename over a file costs three times the write): the only caller,
         :meth:`storage.layout.JobStore.write_bands`, marks the image not uploaded before its
         first shard and uploaded after its last, so a shard cut short is never read."""
+        self.store(coords, self._encode_checked(coords, block))
+
+    def submit(self, coords: tuple[int, ...], block: NDArray[Any]) -> Future[bytes | None]:
+        """:meth:`encode` ``block`` on one of :data:`ENCODERS`' threads (zstd releases the GIL, so an
+        image's shards are encoded two at a time); :meth:`store` the result as :meth:`write` does."""
+        return ENCODERS.submit(self._encode_checked, coords, block)
+
+    def _encode_checked(self, coords: tuple[int, ...], block: NDArray[Any]) -> bytes | None:
         expect = tuple(min(s, n - c * s) for c, s, n in zip(coords, self.shard, self.shape, strict=True))
         if tuple(block.shape) != expect:
             raise ValueError(f"shard {coords} holds {expect} values, got a block of {tuple(block.shape)}")
-        data = self.encode(np.asarray(block))
+        return self.encode(np.asarray(block))
+
+    def store(self, coords: tuple[int, ...], data: bytes | None) -> None:
+        """Write shard ``coords``'s file of :meth:`encode`'s ``data`` (None: no file); see :meth:`write`."""
         path = self.path(coords)
         if data is None:
             path.unlink(missing_ok=True)
