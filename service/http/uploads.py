@@ -1,10 +1,13 @@
 """Upload staging: an image or mask upload from the checks before its body to the store.
 
 Owner, state, index, declared size and disk space are checked before the body is read
-(:meth:`Uploads.before_upload`, :func:`service.http.guards.check_declared`); an image body is
-streamed to a staging file in the job folder, validated whole, then written to the store
-one shard band at a time (:func:`raw_bands`), so the server holds one band of one image per
-request, whatever k is, and a rejected upload leaves the store as it was.
+(:meth:`Uploads.before_upload`, :func:`service.http.guards.check_declared`); a raw image body is
+streamed to a staging file in the job folder (digested as it arrives), validated whole, then
+written to the store one shard band at a time (:func:`raw_bands`), so the server holds one band
+of one image per request, whatever k is, and a rejected upload leaves the store as it was. A
+PNG or TIFF body (at most twice the image plus 1 MiB) is read into memory, as its decoder
+needs it whole. A batch of raw images (:meth:`Uploads.images`) is one raw upload per image,
+back to back in one body.
 """
 
 from __future__ import annotations
