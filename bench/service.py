@@ -13,7 +13,9 @@ another checkout's ``REPO/.venv/bin/maxfs`` in turn with this one, for before/af
   ``maxfs run`` on the same folder (``--folder``, default the DiLiGenT cat crop);
 - ``dask``: ``maxfs run`` on its Dask path (``MAXFS_IN_PROCESS_BYTES=0``) against the in-process
   path on a 1-megapixel 16-bit job (:func:`bench.scale.write_stack`, ``--mp-k`` images);
-- ``upload``: HTTP upload MB/s of raw and of PNG bodies (16-bit 1000 x 1000 images).
+- ``upload``: HTTP upload MB/s of raw and of PNG bodies (16-bit 1000 x 1000 images), one
+  request per image, and of raw images several to a request as ``maxfs submit`` sends them
+  (``PUT /jobs/{id}/images``; "-" for a version without it).
 
 Run: ``python -m bench.service`` (``--only paths,server,dask,upload``; ``--size``, ``--k``,
 ``--tile`` change the paths table's job).
@@ -35,9 +37,10 @@ from pathlib import Path
 
 import numpy as np
 
-from maxfs.service.cli.client import MaxfsClient
+from maxfs.service.cli.client import MaxfsClient, upload_batches
 from maxfs.service.runs.local import ingest, run_store
 from maxfs.storage.datasets import write_npy_folder
+from maxfs.storage.errors import MaxfsError
 from maxfs.storage.inputs import load_folder
 from maxfs.storage.params import JobParams
 from maxfs.worker import synthetic
@@ -260,11 +263,18 @@ def upload_rates(args: argparse.Namespace, tmp: Path) -> None:
     servers = {label: serve(b, tmp / f"up-{label}", 1) for label, b in versions(args).items()}
     try:
 
-        def send(url: str, raw: bool) -> float:
+        def send(url: str, raw: bool, batched: bool = False) -> float:
             with MaxfsClient(url) as c:
                 job = c.create_job(**meta)["id"]
                 t0 = time.perf_counter()
-                for i in range(k):
+                if batched:  # as maxfs submit sends them (PUT /jobs/{id}/images), where the server can
+                    try:
+                        for batch in upload_batches(list(range(k)), images[0].nbytes):
+                            c.upload_images(job, batch[0], list(images[batch[0] : batch[-1] + 1]))
+                    except MaxfsError:
+                        c.delete(job)
+                        return float("nan")  # a version without the batch upload
+                for i in range(k if not batched else 0):
                     if raw:
                         c.upload_image(job, i, images[i])
                     else:
@@ -280,14 +290,18 @@ def upload_rates(args: argparse.Namespace, tmp: Path) -> None:
         for label, srv in servers.items():
             cases[f"{label} raw"] = lambda r, u=srv.url: send(u, True)
             cases[f"{label} png"] = lambda r, u=srv.url: send(u, False)
+            cases[f"{label} batched"] = lambda r, u=srv.url: send(u, True, batched=True)
         got = interleaved(args.runs, cases)
     finally:
         for srv in servers.values():
             srv.stop()
     ratio = images.nbytes / sum(map(len, pngs))
     for label in servers:
+        b = got[f"{label} batched"]
+        batched = "-" if any(np.isnan(b)) else spread(b)
         print(
-            f"| {label} | {spread(got[f'{label} raw'])} | {spread(got[f'{label} png'])} | {ratio:.2f} |",
+            f"| {label} | {spread(got[f'{label} raw'])} | {spread(got[f'{label} png'])} | {batched} "
+            f"| {ratio:.2f} |",
             flush=True,
         )
 
@@ -338,7 +352,11 @@ def main() -> None:
                 f"\nHTTP upload of {args.upload_k} images of {what} (one user, one at a time); "
                 f"MB/s of request body, min / median / max of {args.runs} interleaved runs\n"
             )
-            print("| version | raw MB/s | PNG MB/s | raw / PNG bytes |\n|---|---|---|---|", flush=True)
+            print(
+                "| version | raw MB/s | PNG MB/s | raw, batched MB/s | raw / PNG bytes |\n"
+                "|---|---|---|---|---|",
+                flush=True,
+            )
             upload_rates(args, tmp)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)

@@ -61,7 +61,9 @@ import json
 import os
 import threading
 import time
+from collections import deque
 from collections.abc import Iterable, Mapping
+from concurrent.futures import Future
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -84,7 +86,7 @@ from maxfs.storage.outputs import (
     output_bytes_per_pixel,
 )
 from maxfs.storage.params import JobParams
-from maxfs.storage.shards import ShardWriter
+from maxfs.storage.shards import ChunkWriter, ShardWriter
 from maxfs.storage.tiles import Tile, auto_tile, grid_shape, masked_per_tile, tile_memory, tiles
 
 if TYPE_CHECKING:
@@ -287,6 +289,7 @@ class JobStore:
         self.group = group
         self._arrays: dict[str, zarr.Array] = {}
         self._writer: tuple[ShardWriter | None] | None = None  # (writer,) once looked up
+        self._small: dict[str, ChunkWriter | None] = {}  # see _small_writer
         self._counts: tuple[tuple[bytes, int], NDArray[np.int64]] | None = None
         attrs = dict(group.attrs)
         if attrs.get("maxfs_format") != FORMAT_VERSION:
@@ -494,6 +497,24 @@ class JobStore:
             self._writer = (ShardWriter.for_array(folder, self._fixed("images")),)
         return self._writer[0]
 
+    def _small_writer(self, name: str) -> ChunkWriter | None:
+        """The direct writer of one-row chunks of array ``name`` (:class:`storage.shards.ChunkWriter`),
+        made once; None for an array it does not write."""
+        if name not in self._small:
+            if self.group.store.read_only:  # zarr refuses the write with its own error
+                return None
+            folder = self.path / GROUP_DIR / PATHS.get(name, name)
+            self._small[name] = ChunkWriter.for_array(folder, self._fixed(name))
+        return self._small[name]
+
+    def _set_row(self, name: str, i: int, value: Any) -> None:
+        """``array[i] = value`` for the small per-image arrays (``uploaded``, ``input_digests``)."""
+        w = self._small_writer(name)
+        if w is None:
+            self._fixed(name)[i] = value
+        else:
+            w.write(i, value)
+
     def check_image(self, i: int, image: NDArray[Any]) -> None:
         """Refuse an image whose index, shape or dtype does not fit the job."""
         s = self.spec
@@ -512,27 +533,40 @@ class JobStore:
         B = self.band_rows
         self.write_bands(i, (image[y : y + B] for y in range(0, s.height, B)))
 
-    def write_bands(self, i: int, bands: Iterable[NDArray[Any]]) -> None:
+    def write_bands(self, i: int, bands: Iterable[NDArray[Any]], digest: bytes | None = None) -> None:
         """Store image ``i`` from consecutive bands of :attr:`band_rows` rows (the last may be
-        shorter). ``uploaded[i]`` is False while the bands are written."""
+        shorter). ``uploaded[i]`` is False while the bands are written. ``digest``: the image's
+        :func:`storage.digests.array_digest` when the caller made it already (an upload digests
+        the body as it arrives), else it is made from the bands."""
         self.check_index(i)
         images, y = self._fixed("images"), 0
         writer, rows, H = self._shard_writer(), self.band_rows, self.spec.height
-        self._fixed("uploaded")[i] = False
-        h = ArrayHasher(self.spec.image_shape, self.spec.dtype)
+        self._set_row("uploaded", i, False)
+        h = ArrayHasher(self.spec.image_shape, self.spec.dtype) if digest is None else None
+        # whole shards are encoded on two threads while this one digests, at most two ahead
+        encoding: deque[tuple[tuple[int, ...], Future[bytes | None]]] = deque()
         for band in bands:
             n = band.shape[0]
             if writer is not None and y % rows == 0 and (n == rows or y + n == H):
                 # a whole shard: encoded in one pass (storage.shards), not chunk by chunk
-                writer.write((i, y // rows, *(0,) * (band.ndim - 1)), band[None])
+                coords = (i, y // rows, *(0,) * (band.ndim - 1))
+                encoding.append((coords, writer.submit(coords, band[None])))
+                if len(encoding) > 2:
+                    coords, data = encoding.popleft()
+                    writer.store(coords, data.result())
             else:
                 images[i, y : y + n] = band
-            h.update(band)
+            if h is not None:
+                h.update(band)
             y += n
+        while encoding:
+            coords, data = encoding.popleft()
+            assert writer is not None
+            writer.store(coords, data.result())
         if y != self.spec.height:
             raise InvalidInputError(f"image {i}: got {y} rows, the job expects {self.spec.height}")
-        self._fixed("input_digests")[i] = np.frombuffer(h.digest(), np.uint8)
-        self._fixed("uploaded")[i] = True
+        self._set_row("input_digests", i, np.frombuffer(digest if h is None else h.digest(), np.uint8))
+        self._set_row("uploaded", i, True)
 
     def uploaded(self) -> NDArray[np.bool_]:
         return np.asarray(self._array("uploaded")[...])

@@ -295,6 +295,7 @@ OPERATIONS = {
     ("get", "/jobs/{job_id}"): ({401, 404, 422}, "200", "application/json"),
     ("delete", "/jobs/{job_id}"): ({401, 404, 409, 422}, "200", "application/json"),
     ("put", "/jobs/{job_id}/images/{index}"): ({401, 404, 409, 413, 422, 507}, "200", "application/json"),
+    ("put", "/jobs/{job_id}/images"): ({401, 404, 409, 413, 422, 507}, "200", "application/json"),
     ("put", "/jobs/{job_id}/mask"): ({401, 404, 409, 413, 422}, "200", "application/json"),
     ("post", "/jobs/{job_id}/start"): ({401, 404, 409, 422, 429}, "202", "application/json"),
     ("get", "/jobs/{job_id}/results.zip"): ({401, 404, 409, 422, 429}, "200", "application/zip"),
@@ -360,6 +361,7 @@ def test_openapi_is_generated_from_the_code_and_typed(server: Server, tmp_path: 
     assert bodies == {
         ("post", "/jobs"): ["application/json"],
         ("put", "/jobs/{job_id}/images/{index}"): ["application/octet-stream", "image/png", "image/tiff"],
+        ("put", "/jobs/{job_id}/images"): ["application/octet-stream"],
         ("put", "/jobs/{job_id}/mask"): ["application/octet-stream", "image/png"],
     }
     names = {

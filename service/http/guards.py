@@ -20,7 +20,7 @@ import logging
 import os
 import shutil
 import tempfile
-from collections.abc import AsyncIterator, Iterator
+from collections.abc import AsyncIterator, Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -106,15 +106,25 @@ async def read_body(request: Request, limit: int, idle_timeout: float) -> bytes:
     return bytes(buf)
 
 
-async def stage_body(request: Request, folder: Path, prefix: str, limit: int, idle_timeout: float) -> Path:
+async def stage_body(
+    request: Request,
+    folder: Path,
+    prefix: str,
+    limit: int,
+    idle_timeout: float,
+    feed: Callable[[bytes], object] | None = None,
+) -> Path:
     """Stream the body to a new file in ``folder`` whose name starts with ``prefix`` (removed
-    by the caller, or as an orphan on the next start), as :func:`body_chunks` allows."""
+    by the caller, or as an orphan on the next start), as :func:`body_chunks` allows; each
+    piece is also given to ``feed`` (e.g. a digest's ``update``) as it arrives."""
     fd, tmp = tempfile.mkstemp(prefix=prefix, suffix=".part", dir=folder)
     path = Path(tmp)
     try:
         with os.fdopen(fd, "wb", buffering=0) as f:  # unbuffered: what arrived is on disk
             async for chunk in body_chunks(request, limit, idle_timeout):
                 f.write(chunk)
+                if feed is not None:
+                    feed(chunk)
     except BaseException:
         path.unlink(missing_ok=True)
         raise

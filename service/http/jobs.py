@@ -251,17 +251,26 @@ class JobManager:
         return out
 
     async def _write_before_start(
-        self, job_id: str, what: str, write: Callable[[JobStore], None], *, image: int | None
+        self,
+        job_id: str,
+        what: str,
+        write: Callable[[JobStore], None],
+        *,
+        image: int | None,
+        record: bool = True,
     ) -> JobRecord:
         """Run a store write while the job still takes uploads (under the job's lock, so a
         cancel or start waits for it and sees its result); an image marks it uploading and
-        is recorded in the job record (status reads no store array)."""
+        is recorded in the job record (status reads no store array), unless ``record`` is
+        False (a batch of images records them together, :meth:`record_uploads`)."""
         event = "upload" if image is not None else "mask"
         async with self.lock(job_id):
             rec = self.record(job_id)
             if rec.state not in TRANSITIONS[event]:
                 raise ConflictError(f"job {job_id} is {rec.state.value}; {what} only before start")
             await asyncio.to_thread(write, self._upload_store(job_id))
+            if not record:
+                return rec
             rec = self.record(job_id)  # nothing else changes it meanwhile (the lock); re-read anyway
             rec.state = rec.state.after(event)
             if image is not None:
@@ -269,9 +278,29 @@ class JobManager:
             save_record(self.job_dir(job_id), rec)
             return rec
 
-    async def upload_image(self, job_id: str, index: int, write: Callable[[JobStore], None]) -> JobRecord:
-        """Store image ``index`` with ``write(store)`` (e.g. :meth:`JobStore.write_bands`)."""
-        return await self._write_before_start(job_id, "images can be uploaded", write, image=index)
+    async def upload_image(
+        self, job_id: str, index: int, write: Callable[[JobStore], None], record: bool = True
+    ) -> JobRecord:
+        """Store image ``index`` with ``write(store)`` (e.g. :meth:`JobStore.write_bands`); with
+        ``record`` False the job record is left for :meth:`record_uploads`."""
+        return await self._write_before_start(
+            job_id, "images can be uploaded", write, image=index, record=record
+        )
+
+    async def record_uploads(self, job_id: str, images: list[int]) -> None:
+        """Record images stored by :meth:`upload_image` with ``record=False`` in the job record, in
+        one save (the job moves to uploading if it still takes uploads; a job cancelled or
+        started meanwhile keeps its state, its stored images are recorded all the same)."""
+        if not images:
+            return
+        async with self.lock(job_id):
+            if not self.job_dir(job_id).exists():  # deleted meanwhile: nothing to record
+                return
+            rec = self.record(job_id)
+            if rec.state.accepts_uploads:
+                rec.state = rec.state.after("upload")
+            rec.uploaded_images = sorted({*rec.uploaded_images, *images})
+            save_record(self.job_dir(job_id), rec)
 
     async def upload_mask(self, job_id: str, mask: NDArray[np.bool_]) -> JobRecord:
         return await self._write_before_start(

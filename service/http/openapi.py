@@ -83,6 +83,12 @@ IMAGE_BODY = upload_body(
         "image/tiff": "TIFF of the job's shape and dtype",
     }
 )
+IMAGES_BODY = upload_body(
+    {
+        "application/octet-stream": "images first..first+count-1 as raw little-endian pixels, row-major, "
+        "(H, W[, C]) of the job's dtype each, one after the other",
+    }
+)
 MASK_BODY = upload_body(
     {"application/octet-stream": "raw H*W bytes, non-zero = object", "image/png": "PNG, non-zero = object"}
 )

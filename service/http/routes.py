@@ -105,6 +105,15 @@ class JobRoutes:
             openapi_extra=api.IMAGE_BODY,
         )
         r.add_api_route(
+            "/{job_id}/images",
+            self.upload_images,
+            methods=["PUT"],
+            summary="Upload several images in one request",
+            **doc,
+            responses=job() | api.errors(404, 409, 413, 422, 507),
+            openapi_extra=api.IMAGES_BODY,
+        )
+        r.add_api_route(
             "/{job_id}/mask",
             self.upload_mask,
             methods=["PUT"],
@@ -200,6 +209,23 @@ class JobRoutes:
         Idempotent: uploading the same index again replaces it, until the job starts.
         """
         await self.uploads.image(request, job_id, index)
+        return self._body(request, job_id)
+
+    async def upload_images(
+        self,
+        job_id: str,
+        request: Request,
+        first: Annotated[int, Query(ge=0, description="index of the first image in the body")],
+        count: Annotated[int, Query(ge=1, description="how many images the body holds")],
+    ) -> dict[str, Any]:
+        """Upload images ``first`` .. ``first + count - 1`` in one raw body, one after the other
+        (application/octet-stream; PNG and TIFF files go one per request).
+
+        For many small images, where a request per image costs more than the image. Each image
+        is checked and stored as its bytes arrive, as a single upload stores it: a body cut
+        short keeps the whole images before the cut (the status lists those still missing).
+        """
+        await self.uploads.images(request, job_id, first, count)
         return self._body(request, job_id)
 
     async def upload_mask(self, job_id: str, request: Request) -> dict[str, Any]:

@@ -1,25 +1,32 @@
 """Upload staging: an image or mask upload from the checks before its body to the store.
 
 Owner, state, index, declared size and disk space are checked before the body is read
-(:meth:`Uploads.before_upload`, :func:`service.http.guards.check_declared`); an image body is
-streamed to a staging file in the job folder, validated whole, then written to the store
-one shard band at a time (:func:`raw_bands`), so the server holds one band of one image per
-request, whatever k is, and a rejected upload leaves the store as it was.
+(:meth:`Uploads.before_upload`, :func:`service.http.guards.check_declared`); a raw image body is
+streamed to a staging file in the job folder (digested as it arrives), validated whole, then
+written to the store one shard band at a time (:func:`raw_bands`), so the server holds one band
+of one image per request, whatever k is, and a rejected upload leaves the store as it was. A
+PNG or TIFF body (at most twice the image plus 1 MiB) is read into memory, as its decoder
+needs it whole. A batch of raw images (:meth:`Uploads.images`) is one raw upload per image,
+back to back in one body.
 """
 
 from __future__ import annotations
 
+import os
+import tempfile
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from fastapi import Request
 
 from maxfs.service.http.auth import user_of
-from maxfs.service.http.guards import check_declared, is_raw, mask_of, read_body, stage_body
+from maxfs.service.http.guards import body_chunks, check_declared, is_raw, mask_of, read_body, stage_body
 from maxfs.service.http.jobs import TEMP_PREFIX, JobManager
 from maxfs.service.settings import Settings
-from maxfs.storage.errors import ConflictError, InvalidInputError, NotFoundError
+from maxfs.storage.digests import ArrayHasher
+from maxfs.storage.errors import ConflictError, InvalidInputError, NotFoundError, PayloadTooLargeError
 from maxfs.storage.layout import JobSpec, JobStore
 
 
@@ -73,37 +80,152 @@ class Uploads:
         declared = request.headers.get("content-length", "")
         staged = min(limit, int(declared)) if declared.isdigit() else limit
         with self.m.uploads.take(user.name), self.m.disk.hold(spec.image_nbytes + staged, f"image {index}"):
+            if not raw:
+                await self._encoded_image(request, job_id, index, spec, limit)
+                return
+            # the digest is made as the body arrives (the body is the image's little-endian
+            # bytes, what the digest reads), not from a second pass over the stored bands
+            hasher = ArrayHasher(spec.image_shape, spec.dtype)
             part = await stage_body(
-                request, self.m.job_dir(job_id), f"{TEMP_PREFIX}upload-{index}-", limit, s.upload_idle_timeout
+                request,
+                self.m.job_dir(job_id),
+                f"{TEMP_PREFIX}upload-{index}-",
+                limit,
+                s.upload_idle_timeout,
+                feed=hasher.h.update,
             )
             try:
                 size = part.stat().st_size
-                if raw:
-                    if size != spec.image_nbytes:
-                        raise InvalidInputError(
-                            f"image {index}: got {size} bytes, expected {spec.image_nbytes} "
-                            f"({' x '.join(map(str, spec.image_shape))} {spec.dtype}, little-endian, "
-                            "row-major); for a PNG or TIFF file send Content-Type: image/png or image/tiff"
-                        )
-
-                    def write(st: JobStore) -> None:
-                        st.write_bands(index, raw_bands(part, spec, st.band_rows))
-
-                else:  # header checked before any pixel is decoded; decoded in a thread
-                    img = await self.m.decoder.decode_file(
-                        part,
-                        f"image {index}",
-                        max_bytes=2 * spec.image_nbytes + (1 << 20),
-                        shape=spec.image_shape,
-                        dtype=spec.dtype,
+                if size != spec.image_nbytes:
+                    raise InvalidInputError(
+                        f"image {index}: got {size} bytes, expected {spec.image_nbytes} "
+                        f"({' x '.join(map(str, spec.image_shape))} {spec.dtype}, little-endian, "
+                        "row-major); for a PNG or TIFF file send Content-Type: image/png or image/tiff"
                     )
+                digest = hasher.digest()
 
-                    def write(st: JobStore) -> None:
-                        st.write_image(index, img)
+                def write(st: JobStore) -> None:
+                    st.write_bands(index, raw_bands(part, spec, st.band_rows), digest=digest)
 
                 await self.m.upload_image(job_id, index, write)
             finally:
                 part.unlink(missing_ok=True)
+
+    async def images(self, request: Request, job_id: str, first: int, count: int) -> None:
+        """Store images ``first .. first + count - 1`` from one raw body: their little-endian
+        bytes one after the other (see :meth:`_images`)."""
+        try:
+            await self._images(request, job_id, first, count)
+        except FileNotFoundError:
+            if self.m.job_dir(job_id).exists():
+                raise
+            raise NotFoundError(f"job {job_id} was deleted during the upload") from None
+
+    async def _images(self, request: Request, job_id: str, first: int, count: int) -> None:
+        """A batch of small images in one request (one request per image costs more than the
+        image when images are small). The checks of a single raw upload, for the whole body
+        before it is read; then each image is staged, checked and stored as soon as its bytes
+        are in, exactly as a single upload stores it, and the job record is saved once for the
+        batch. A body cut short or too long keeps the whole images that came before the fault
+        (resumable: the status lists the images still missing)."""
+        spec = self.before_upload(request, job_id, "images can be uploaded")
+        last = first + count - 1
+        if count < 1 or not 0 <= first <= last < spec.k:
+            raise NotFoundError(
+                f"images {first}..{last} are out of range; this job has images 0..{spec.k - 1}"
+            )
+        if not is_raw(request):
+            raise InvalidInputError(
+                "a batch of images is raw little-endian bytes (Content-Type: application/octet-stream), "
+                "one image after the other; send a PNG or TIFF file alone to PUT /jobs/{id}/images/{index}"
+            )
+        size = spec.image_nbytes
+        limit = count * size
+        if limit > self.s.max_upload_bytes:
+            raise PayloadTooLargeError(
+                f"{count} images of {size} bytes are {limit} bytes, more than one request may carry "
+                f"({self.s.max_upload_bytes}, MAXFS_MAX_UPLOAD_BYTES); send fewer images per request"
+            )
+        check_declared(request, limit)
+        declared = request.headers.get("content-length", "")
+        if declared.isdigit() and int(declared) != limit:
+            raise InvalidInputError(
+                f"images {first}..{last}: the body declares {declared} bytes, {count} images need "
+                f"{limit} ({count} x {size}: {' x '.join(map(str, spec.image_shape))} {spec.dtype}, "
+                "little-endian, row-major, one after the other)"
+            )
+        folder, stored = self.m.job_dir(job_id), []
+        # every image of the batch stored, and the one being staged, reserved before a byte is written
+        hold = self.m.disk.hold(limit + size, f"images {first}..{last}")
+        with self.m.uploads.take(user_of(request).name), hold:
+            part: Path | None = None
+            f: Any = None
+            try:
+                got = 0
+                async for chunk in body_chunks(request, limit, self.s.upload_idle_timeout):
+                    view = memoryview(chunk)
+                    while view:
+                        index = first + len(stored)
+                        if f is None:
+                            fd, name = tempfile.mkstemp(
+                                prefix=f"{TEMP_PREFIX}upload-{index}-", suffix=".part", dir=folder
+                            )
+                            part, f = Path(name), os.fdopen(fd, "wb", buffering=0)
+                            hasher, got = ArrayHasher(spec.image_shape, spec.dtype), 0
+                        piece, view = view[: size - got], view[size - got :]
+                        f.write(piece)
+                        hasher.h.update(piece)
+                        got += len(piece)
+                        if got < size:
+                            continue
+                        f.close()
+                        f = None
+                        await self._store_raw(job_id, index, spec, part, hasher.digest())
+                        part.unlink(missing_ok=True)
+                        stored.append(index)
+                if len(stored) != count:
+                    received = len(stored) * size + (got if f is not None else 0)
+                    raise InvalidInputError(
+                        f"images {first}..{last}: got {received} bytes, expected {limit} ({count} x {size}); "
+                        f"the {len(stored)} whole images that came first are stored"
+                    )
+            finally:
+                if f is not None:
+                    f.close()
+                if part is not None:
+                    part.unlink(missing_ok=True)
+                await self.m.record_uploads(job_id, stored)
+
+    async def _store_raw(self, job_id: str, index: int, spec: JobSpec, part: Path, digest: bytes) -> None:
+        """Store image ``index`` of a batch from its staged raw file (recorded by the caller)."""
+
+        def write(st: JobStore) -> None:
+            st.write_bands(index, raw_bands(part, spec, st.band_rows), digest=digest)
+
+        await self.m.upload_image(job_id, index, write, record=False)
+
+    async def _encoded_image(
+        self, request: Request, job_id: str, index: int, spec: JobSpec, limit: int
+    ) -> None:
+        """A PNG or TIFF body: read into memory (the decoder wants it whole; at most ``limit``
+        bytes, what a staged file was read back as), its header checked before any pixel is
+        decoded, decoded in a thread, stored."""
+        data = await read_body(request, limit, self.s.upload_idle_timeout)
+        if not self.m.job_dir(job_id).exists():
+            raise FileNotFoundError(job_id)  # deleted while the body arrived (see image())
+        img = await self.m.decoder.decode(
+            data,
+            f"image {index}",
+            max_bytes=2 * spec.image_nbytes + (1 << 20),
+            shape=spec.image_shape,
+            dtype=spec.dtype,
+        )
+        del data
+
+        def write(st: JobStore) -> None:
+            st.write_image(index, img)
+
+        await self.m.upload_image(job_id, index, write)
 
     async def mask(self, request: Request, job_id: str) -> None:
         """Store the object mask from the request body: PNG (non-zero = object) or raw H*W bytes."""
