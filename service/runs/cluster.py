@@ -173,27 +173,21 @@ def local_worker_config(dashboard: str) -> dict[str, Any]:
     }
 
 
-#: What the fork server imports before it forks the first worker (:mod:`worker.forkserver`).
-FORKSERVER_PRELOAD = ["maxfs.worker.forkserver"]
-
-
 def start_forkserver() -> None:
-    """Start this process's fork server, the parent of the embedded cluster's worker processes.
+    """Start this process's fork server (:mod:`service.runs.forkserver`, unless ``maxfs run`` did
+    already), the parent of the embedded cluster's worker processes.
 
     A worker spawned afresh imports Dask, NumPy, numba and the solver and loads the kernels from
     numba's cache: 2-4 s of CPU per worker. Forked from the fork server (a single-threaded process,
     started once per process and kept), it has them already: paid once, not once per worker, and
     not again for a later cluster of this process. Dask's own preload list (which also imports
-    pandas, here in this process) is replaced by :data:`FORKSERVER_PRELOAD`."""
-    import multiprocessing
-    import multiprocessing.forkserver
-
+    pandas, here in this process) is not used."""
     from distributed import utils
 
-    ctx = multiprocessing.get_context("forkserver")
-    ctx.set_forkserver_preload(FORKSERVER_PRELOAD)
-    utils._forkserver_preload_set = True  # Dask's get_mp_context keeps the list above
-    multiprocessing.forkserver.ensure_running()
+    from maxfs.service.runs import forkserver
+
+    forkserver.launch()
+    utils._forkserver_preload_set = True  # Dask's get_mp_context keeps the list of launch()
 
 
 async def _start_local(settings: Settings) -> DaskCluster:

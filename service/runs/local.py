@@ -24,7 +24,7 @@ from numpy.typing import NDArray
 from maxfs.service.results.previews import PREVIEW_INPUTS, PREVIEWS, render, with_legend
 from maxfs.service.runs.progress import ProgressFn
 from maxfs.service.runs.timings import Timings
-from maxfs.service.settings import Settings, cluster_settings, runs_in_process
+from maxfs.service.settings import Settings, cluster_kind, cluster_settings, runs_in_process
 from maxfs.storage.datasets import Dataset
 from maxfs.storage.errors import ConflictError, InvalidInputError, StoreError
 from maxfs.storage.imageio import encode_png
@@ -230,6 +230,11 @@ async def _ingest_and_run(
     finished already) the cluster starts while the images are decoded and stored, its workers
     loading the solver meanwhile; a done job's previews and depth are made while it stops.
     Returns the store and the record, or None for the record when the job was finished before."""
+    if early and cluster_kind(settings) == "local":
+        from maxfs.service.runs import forkserver
+
+        forkserver.launch()  # loads the solver for the workers while Dask is imported here
+
     from maxfs.service.runs.cluster import DaskCluster, start_cluster  # imports distributed
     from maxfs.service.runs.orchestrator import run_job
 
