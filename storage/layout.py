@@ -86,7 +86,7 @@ from maxfs.storage.outputs import (
     output_bytes_per_pixel,
 )
 from maxfs.storage.params import JobParams
-from maxfs.storage.shards import ChunkWriter, ShardWriter
+from maxfs.storage.shards import ChunkWriter, ShardReader, ShardWriter
 from maxfs.storage.tiles import Tile, auto_tile, grid_shape, masked_per_tile, tile_memory, tiles
 
 if TYPE_CHECKING:
@@ -290,6 +290,7 @@ class JobStore:
         self._arrays: dict[str, zarr.Array] = {}
         self._writer: tuple[ShardWriter | None] | None = None  # (writer,) once looked up
         self._small: dict[str, ChunkWriter | None] = {}  # see _small_writer
+        self._reader: tuple[ShardReader | None] | None = None  # (reader,) once looked up
         self._counts: tuple[tuple[bytes, int], NDArray[np.int64]] | None = None
         attrs = dict(group.attrs)
         if attrs.get("maxfs_format") != FORMAT_VERSION:
@@ -675,7 +676,14 @@ class JobStore:
         return self.read_tile_images(t), self.read_tile_mask(t)
 
     def read_tile_images(self, t: Tile) -> NDArray[Any]:
-        return np.asarray(self._fixed("images")[:, t.y0 : t.y1, t.x0 : t.x1])
+        """The raw images of window ``t`` ``(k, h, w[, C])``: from the shard files directly
+        (:class:`storage.shards.ShardReader`), or through zarr for other codecs."""
+        if self._reader is None:
+            folder = self.path / GROUP_DIR / PATHS["images"]
+            self._reader = (ShardReader.for_array(folder, self._fixed("images")),)
+        region = (slice(None), slice(t.y0, t.y1), slice(t.x0, t.x1))
+        got = None if self._reader[0] is None else self._reader[0].read(region)
+        return np.asarray(self._fixed("images")[region]) if got is None else got
 
     def read_tile_mask(self, t: Tile) -> NDArray[np.bool_]:
         return np.asarray(self._fixed("mask")[t.y0 : t.y1, t.x0 : t.x1])

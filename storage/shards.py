@@ -12,6 +12,7 @@ file. Any other codec chain gets no writer
 
 from __future__ import annotations
 
+import itertools
 import os
 import threading
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -208,3 +209,91 @@ class ChunkWriter:
         except BaseException:
             tmp.unlink(missing_ok=True)
             raise
+
+
+class ShardReader:
+    """Reads a region of one local Zarr v3 array straight from its shard files: what zarr-python
+    reads, without its coroutine and thread hop per inner chunk (about 0.2 ms each, as for
+    writing; a 240 x 240 tile of 16 images read through zarr cost 20-60 ms, of which decoding
+    the chunks is 2 ms). Only arrays :meth:`ShardWriter.for_array` accepts (the same codecs,
+    whoever wrote the shards); a shard whose index does not check out is left to zarr
+    (:meth:`read` answers None)."""
+
+    def __init__(self, folder: Path, array: zarr.Array, codec: ShardingCodec) -> None:
+        self.folder = Path(folder)
+        self.shard = tuple(int(n) for n in array.metadata.chunk_grid.chunk_shape)
+        self.chunk = tuple(int(n) for n in codec.chunk_shape)
+        self.per_shard = tuple(s // c for s, c in zip(self.shard, self.chunk, strict=True))
+        self.shape = tuple(int(n) for n in array.shape)
+        self.stored = np.dtype(array.dtype).newbyteorder("<")
+        self.dtype = np.dtype(array.dtype)  # as zarr answers
+        self.fill = array.metadata.fill_value
+        self.keys = array.metadata.chunk_key_encoding
+        self.index_bytes = int(np.prod(self.per_shard)) * 16 + 4
+        self.zstd = Zstd()
+
+    @classmethod
+    def for_array(cls, folder: Path, array: zarr.Array) -> ShardReader | None:
+        """A reader for ``array`` stored in ``folder`` (its local directory), or None when
+        :class:`ShardWriter` would not encode it."""
+        if ShardWriter.for_array(folder, array) is None:
+            return None
+        return cls(folder, array, array.metadata.codecs[0])
+
+    def _index(self, f: Any, size: int) -> NDArray[np.uint64] | None:
+        """The shard's (offset, length) per inner chunk, or None when it does not check out."""
+        if size < self.index_bytes:
+            return None
+        raw = os.pread(f, self.index_bytes, size - self.index_bytes)
+        body, crc = raw[:-4], raw[-4:]
+        if len(raw) != self.index_bytes or google_crc32c.value(body) != int(np.frombuffer(crc, "<u4")[0]):
+            return None
+        return np.frombuffer(body, "<u8").reshape(*self.per_shard, 2)
+
+    def read(self, region: tuple[slice, ...]) -> NDArray[Any] | None:
+        """The values of ``region`` (a slice per dimension, steps of 1) as zarr reads them, or
+        None where zarr should read them instead (a shard whose index is damaged or cut short).
+        Dimensions left out are read whole."""
+        region = (*region, *(slice(None),) * (len(self.shape) - len(region)))
+        bounds = [r.indices(n)[:2] for r, n in zip(region, self.shape, strict=True)]
+        out = np.empty([max(0, b - a) for a, b in bounds], dtype=self.dtype)
+        if out.size == 0:
+            return out
+        spans = [range(a // c, (b - 1) // c + 1) for (a, b), c in zip(bounds, self.chunk, strict=True)]
+        by_shard: dict[tuple[int, ...], list[tuple[int, ...]]] = {}
+        for cc in itertools.product(*spans):
+            by_shard.setdefault(tuple(c // p for c, p in zip(cc, self.per_shard, strict=True)), []).append(cc)
+        for sc, chunks in by_shard.items():
+            try:
+                f = os.open(self.folder / self.keys.encode_chunk_key(sc), os.O_RDONLY)
+            except FileNotFoundError:  # no shard file: every chunk holds the fill value
+                for cc in chunks:
+                    out[self._overlap(cc, bounds)[1]] = self.fill
+                continue
+            try:
+                index = self._index(f, os.fstat(f).st_size)
+                if index is None:
+                    return None
+                for cc in chunks:
+                    src, dst = self._overlap(cc, bounds)
+                    at = tuple(c % p for c, p in zip(cc, self.per_shard, strict=True))
+                    offset, length = (int(v) for v in index[at])
+                    if offset == EMPTY and length == EMPTY:
+                        out[dst] = self.fill
+                        continue
+                    data = os.pread(f, length, offset)
+                    if len(data) != length:
+                        return None
+                    out[dst] = np.frombuffer(self.zstd.decode(data), self.stored).reshape(self.chunk)[src]
+            finally:
+                os.close(f)
+        return out
+
+    def _overlap(self, cc: tuple[int, ...], bounds: list[tuple[int, int]]) -> tuple[tuple[slice, ...], ...]:
+        """Where inner chunk ``cc`` and the region ``bounds`` meet: (in the chunk, in the region)."""
+        src, dst = [], []
+        for c, n, (a, b) in zip(cc, self.chunk, bounds, strict=True):
+            lo, hi = max(a, c * n), min(b, (c + 1) * n)
+            src.append(slice(lo - c * n, hi - c * n))
+            dst.append(slice(lo - a, hi - a))
+        return tuple(src), tuple(dst)

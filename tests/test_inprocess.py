@@ -62,11 +62,13 @@ def test_threads_and_dask_cluster_give_identical_stores_and_finished_jobs_do_not
     assert "tiles" in _phases(threads.stderr) and "cluster run (tiles)" not in _phases(threads.stderr)
     dask = _run(folder, tmp_path / "dask.zarr", "--workers", "1", MAXFS_IN_PROCESS_BYTES="0")
     assert dask.returncode == 0, dask.stderr
-    # the cluster started while the images were stored; previews and depth made while it stopped
-    assert _phases(dask.stderr)[:7] == [
+    # the cluster started while the images were stored and eps was estimated here, from the
+    # windows kept of each image; previews and depth made while it stopped
+    assert _phases(dask.stderr)[:8] == [
         "open the folder",
         "imports",
         "open or create the store",
+        "eps estimate",
         "cluster start (what reading left)",
         "cluster run (tiles)",
         "previews",

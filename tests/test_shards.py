@@ -13,7 +13,7 @@ from zarr.codecs import BloscCodec, ZstdCodec
 
 from maxfs.storage.layout import GROUP_DIR, PATHS, JobSpec, JobStore
 from maxfs.storage.params import JobParams
-from maxfs.storage.shards import ShardWriter
+from maxfs.storage.shards import ShardReader, ShardWriter
 from maxfs.worker import synthetic
 
 
@@ -100,3 +100,44 @@ def test_arrays_of_other_codecs_get_no_writer_and_are_written_by_zarr(tmp_path: 
     np.testing.assert_array_equal(ok[1, 16:], block[0])
     with pytest.raises(ValueError, match="holds"):
         w.write((1, 0, 0), block[:, :8])
+
+
+@pytest.mark.parametrize(("channels", "dtype"), [(None, "uint16"), (3, "uint8"), (None, "float32")])
+def test_shard_reader_reads_any_window_as_zarr_does(tmp_path: Path, channels: int | None, dtype: str) -> None:
+    """Tile tasks read their images straight from the shard files (ShardReader): the same values
+    and dtype as zarr's own reads, for windows on and off the tile grid, over chunks and shards of
+    fill value only, in stores written by ShardWriter or by zarr; a damaged shard index is left
+    to zarr (the reader answers None)."""
+    k, h, w, tile = 4, 70, 45, 16
+    shape = (h, w) if channels is None else (h, w, channels)
+    images = _images(k, shape, dtype, seed=7)
+    for name, writer in (("fast", True), ("slow", False)):
+        store = _store(tmp_path / name, k, h, w, channels, dtype, tile)
+        if not writer:
+            store._writer = (None,)
+        for i in range(k - 1):  # the last image never stored: no shard files at all
+            store.write_image(i, images[i])
+        store = JobStore.open(tmp_path / name, mode="r")
+        z = store._fixed("images")
+        reader = ShardReader.for_array(tmp_path / name / GROUP_DIR / PATHS["images"], z)
+        assert reader is not None
+        rng = np.random.default_rng(3)
+        windows = [(t.y0, t.y1, t.x0, t.x1) for t in store.tiles()] + [
+            (y0, min(h, y0 + dy), x0, min(w, x0 + dx))
+            for y0, x0, dy, dx in rng.integers([0, 0, 1, 1], [h, w, 40, 40], size=(60, 4))
+        ]
+        for y0, y1, x0, x1 in windows:
+            got = reader.read((slice(None), slice(y0, y1), slice(x0, x1)))
+            want = np.asarray(z[:, y0:y1, x0:x1])
+            assert got is not None and got.dtype == want.dtype
+            np.testing.assert_array_equal(got, want)
+        np.testing.assert_array_equal(reader.read((slice(2, 3), slice(5, 60), slice(0, 45))), z[2:3, 5:60])
+    folder = tmp_path / "fast" / GROUP_DIR / PATHS["images"]
+    reader = ShardReader.for_array(folder, JobStore.open(tmp_path / "fast", mode="r")._fixed("images"))
+    assert reader is not None
+    shard = next(p for p in (folder / "c").rglob("*") if p.is_file())
+    data = bytearray(shard.read_bytes())
+    data[-6] ^= 0xFF  # in the index: its checksum no longer matches
+    shard.write_bytes(bytes(data))
+    i, y = (int(n) for n in shard.relative_to(folder / "c").parts[:2])
+    assert reader.read((slice(i, i + 1), slice(y * tile, y * tile + 1), slice(0, w))) is None

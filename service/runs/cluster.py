@@ -167,13 +167,34 @@ LOCAL_WORKER_CONFIG: dict[str, Any] = {
 
 def local_worker_config(dashboard: str) -> dict[str, Any]:
     """:data:`LOCAL_WORKER_CONFIG`, with the profiler on when a dashboard shows it."""
-    return LOCAL_WORKER_CONFIG | {"distributed.worker.profile.enabled": bool(dashboard)}
+    return LOCAL_WORKER_CONFIG | {
+        "distributed.worker.profile.enabled": bool(dashboard),
+        "distributed.worker.multiprocessing-method": "forkserver",
+    }
+
+
+def start_forkserver() -> None:
+    """Start this process's fork server (:mod:`service.runs.forkserver`, unless ``maxfs run`` did
+    already), the parent of the embedded cluster's worker processes.
+
+    A worker spawned afresh imports Dask, NumPy, numba and the solver and loads the kernels from
+    numba's cache: 2-4 s of CPU per worker. Forked from the fork server (a single-threaded process,
+    started once per process and kept), it has them already: paid once, not once per worker, and
+    not again for a later cluster of this process. Dask's own preload list (which also imports
+    pandas, here in this process) is not used."""
+    from distributed import utils
+
+    from maxfs.service.runs import forkserver
+
+    forkserver.launch()
+    utils._forkserver_preload_set = True  # Dask's get_mp_context keeps the list of launch()
 
 
 async def _start_local(settings: Settings) -> DaskCluster:
     import dask
     from distributed import LocalCluster
 
+    await asyncio.to_thread(start_forkserver)
     security = Security.temporary()
     with dask.config.set(local_worker_config(settings.dashboard)):  # read as the nannies are made
         cluster = await LocalCluster(

@@ -24,7 +24,7 @@ from numpy.typing import NDArray
 from maxfs.service.results.previews import PNG_LEVEL, PREVIEW_INPUTS, PREVIEWS, render, with_legend
 from maxfs.service.runs.progress import ProgressFn
 from maxfs.service.runs.timings import Timings
-from maxfs.service.settings import Settings, cluster_settings, runs_in_process
+from maxfs.service.settings import Settings, cluster_kind, cluster_settings, runs_in_process
 from maxfs.storage.datasets import Dataset
 from maxfs.storage.errors import ConflictError, InvalidInputError, StoreError
 from maxfs.storage.imageio import encode_png
@@ -230,6 +230,11 @@ async def _ingest_and_run(
     finished already) the cluster starts while the images are decoded and stored, its workers
     loading the solver meanwhile; a done job's previews and depth are made while it stops.
     Returns the store and the record, or None for the record when the job was finished before."""
+    if early and cluster_kind(settings) == "local":
+        from maxfs.service.runs import forkserver
+
+        forkserver.launch()  # loads the solver for the workers while Dask is imported here
+
     from maxfs.service.runs.cluster import DaskCluster, start_cluster  # imports distributed
     from maxfs.service.runs.orchestrator import run_job
 
@@ -239,12 +244,13 @@ async def _ingest_and_run(
     starting = asyncio.ensure_future(start_cluster(settings, log_dir=logs)) if early else None
     stop = threading.Event()
     dc: DaskCluster | None = None
+    sample = SampleWindows(ds)
     try:
         t0 = time.perf_counter()
         try:
             store, note = await asyncio.to_thread(
                 ingest,
-                ds,
+                sample.dataset,
                 out,
                 params,
                 overwrite=overwrite,
@@ -259,6 +265,12 @@ async def _ingest_and_run(
             on_note(note)
         if finished_before(store):
             return store, None
+        reader = sample.reader(store)
+        if reader is not None and store.params.eps is None:
+            # while the cluster starts, from the windows kept: no task reading them back from the store
+            t0 = time.perf_counter()
+            await asyncio.to_thread(_estimate_eps, store, reader)
+            tm.add("eps estimate", time.perf_counter() - t0)
         t0 = time.perf_counter()
         dc = await (starting or start_cluster(settings, log_dir=logs))
         starting = None
@@ -269,7 +281,7 @@ async def _ingest_and_run(
         if rec.state is JobState.DONE:
             closing, dc = asyncio.ensure_future(dc.close()), None
             try:
-                found = await asyncio.to_thread(finish, out, tm)
+                found = await asyncio.to_thread(finish, out, tm, reader)
             finally:
                 await closing
             rec.calibration = [*(f"input folder: {n}" for n in ds.notes), *found]
@@ -283,6 +295,51 @@ async def _ingest_and_run(
             t0 = time.perf_counter()
             await dc.close()
             tm.add("cluster stop", time.perf_counter() - t0)
+
+
+class SampleWindows:
+    """The windows of the eps sample (:func:`worker.solve.eps_sample`, a function of the image size
+    and mask alone) cut from every image of ``ds`` as :attr:`dataset` is read: the Dask path
+    stores the images and keeps only these (a few thousand pixels per image), from which the eps
+    estimate and the calibration checks read what they would read back from the store."""
+
+    def __init__(self, ds: Dataset) -> None:
+        from maxfs.worker.solve import eps_sample
+
+        self._windows = [(t.y0, t.y1, t.x0, t.x1) for t, _, _ in eps_sample((ds.height, ds.width), ds.mask)]
+        self._cuts: list[list[NDArray] | None] = [None] * ds.k
+        self._source = ds
+        self.dataset = replace(ds, _reader=self._read)
+
+    def _read(self, i: int) -> NDArray:
+        img = self._source.read(i)
+        self._cuts[i] = [np.array(img[y0:y1, x0:x1]) for y0, y1, x0, x1 in self._windows]
+        return img
+
+    def reader(self, store: JobStore) -> Callable[[Tile], NDArray] | None:
+        """What :meth:`JobStore.read_tile_images` gives for a window of the sample, from the windows
+        kept (any other window from ``store``); None unless every image was read."""
+        if any(c is None for c in self._cuts):
+            return None
+        stacks = {w: np.stack([c[j] for c in self._cuts]) for j, w in enumerate(self._windows)}
+
+        def read(t: Tile) -> NDArray:
+            got = stacks.get((t.y0, t.y1, t.x0, t.x1))
+            return store.read_tile_images(t) if got is None else got.copy()
+
+        return read
+
+
+def _estimate_eps(store: JobStore, reader: Callable[[Tile], NDArray]) -> None:
+    """eps (and response) "auto" resolved in this process, as the in-process path does. A failure
+    leaves them unresolved: the run's estimate task then fails the job with the error, as ever."""
+    from maxfs.service.runs.progress import resolve_eps
+    from maxfs.worker.task import estimate_eps_of
+
+    try:
+        resolve_eps(store, estimate_eps_of(store, reader))
+    except Exception:
+        log.debug("eps estimate in this process failed; the cluster tries it", exc_info=True)
 
 
 def run_store(
