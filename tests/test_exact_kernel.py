@@ -10,13 +10,13 @@ import pytest
 
 from maxfs.worker import synthetic
 from maxfs.worker.exact import (
-    _LP_GAP,
     _LP_SLACK,
     _NONE,
     _hull_pass,
     _hull_pass_bins,
     _lp_box,
     _lp_search,
+    _lp_work,
     _sweep,
     _sweep_bins,
     above_index,
@@ -221,25 +221,6 @@ def test_box_lp_finds_a_point_or_a_core_of_at_most_four_slabs_without_one() -> N
             assert 1 <= q.size <= 4 and not skip[q].any()
             assert not _box_lp_feasible(L[q], lo[q], hi[q], c, h), f"trial {trial}: core {q} holds a point"
     assert min(seen.values()) > 40  # both answers were exercised
-
-
-def _lp_work(k: int) -> tuple:
-    """The LPs' work arrays, as :func:`solve_exact` allocates them."""
-    return (
-        np.empty((2 * k, 3)),
-        np.empty(2 * k),
-        np.empty(2 * k, np.int64),
-        np.empty((2 * k + 2, 2)),
-        np.empty(2 * k + 2),
-        np.zeros(k, np.bool_),
-        np.empty(3),
-        np.zeros(_LP_GAP, np.int64),
-        np.empty((_LP_GAP + 1, 4), np.int64),
-        np.empty((2 * k + 6, 3)),
-        np.empty(2 * k + 6),
-        np.empty(3),
-        np.empty(3),
-    )
 
 
 def test_lp_search_claims_a_point_where_the_slabs_meet_off_the_box_centre() -> None:

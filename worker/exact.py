@@ -1001,6 +1001,27 @@ def _project(L, a, b, idx, m, U, margin, n0, sweeps, lo, hi, best, bp):  # pragm
 
 
 @njit(cache=True, nogil=True)
+def _lp_work(k):  # pragma: no cover - numba
+    """The LPs' work arrays for ``k`` slabs (then the vertex enumeration's, and the box centre and
+    half-widths), made once per batch and passed to :func:`_lp_search`."""
+    return (
+        np.empty((2 * k, 3)),
+        np.empty(2 * k),
+        np.empty(2 * k, np.int64),
+        np.empty((2 * k + 2, 2)),
+        np.empty(2 * k + 2),
+        np.zeros(k, np.bool_),
+        np.empty(3),
+        np.zeros(_LP_GAP, np.int64),
+        np.empty((_LP_GAP + 1, 4), np.int64),
+        np.empty((2 * k + 6, 3)),
+        np.empty(2 * k + 6),
+        np.empty(3),
+        np.empty(3),
+    )
+
+
+@njit(cache=True, nogil=True)
 def solve_exact(
     I,
     slab_lo,
@@ -1057,21 +1078,7 @@ def solve_exact(
     bneg = np.empty(k + 1)
     hs = np.zeros(_BINS, np.int64)
     he = np.zeros(_BINS, np.int64)
-    lpw = (  # the LPs' work arrays
-        np.empty((2 * k, 3)),
-        np.empty(2 * k),
-        np.empty(2 * k, np.int64),
-        np.empty((2 * k + 2, 2)),
-        np.empty(2 * k + 2),
-        np.zeros(k, np.bool_),
-        np.empty(3),
-        np.zeros(_LP_GAP, np.int64),
-        np.empty((_LP_GAP + 1, 4), np.int64),
-        np.empty((2 * k + 6, 3)),  # then the vertex enumeration's, and the box centre and half-widths
-        np.empty(2 * k + 6),
-        np.empty(3),
-        np.empty(3),
-    )
+    lpw = _lp_work(k)
     lo = np.zeros(k)
     hi = np.zeros(k)
     margin = np.zeros(k)
