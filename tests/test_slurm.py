@@ -274,7 +274,10 @@ def test_store_the_workers_cannot_see_fails_the_job_with_a_clear_message(
     assert r.returncode != 0
     assert f"the Dask workers cannot see the job store {out}" in r.stderr, r.stderr
     assert "mount at the same path" in r.stderr
-    assert not JobStore.open(out, mode="r").done_grid().any()
+    # no tile was computed (tiles without a masked pixel count as done once eps is known, which
+    # maxfs run now estimates itself while the cluster starts)
+    store = JobStore.open(out, mode="r")
+    assert not (store.done_grid() & (store.masked_per_tile() > 0)).any()
 
 
 def test_batch_script_runs_maxfs_inside_one_allocation(
