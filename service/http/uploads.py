@@ -102,12 +102,7 @@ class Uploads:
                         f"({' x '.join(map(str, spec.image_shape))} {spec.dtype}, little-endian, "
                         "row-major); for a PNG or TIFF file send Content-Type: image/png or image/tiff"
                     )
-                digest = hasher.digest()
-
-                def write(st: JobStore) -> None:
-                    st.write_bands(index, raw_bands(part, spec, st.band_rows), digest=digest)
-
-                await self.m.upload_image(job_id, index, write)
+                await self._store_raw(job_id, index, spec, part, hasher.digest())
             finally:
                 part.unlink(missing_ok=True)
 
@@ -180,7 +175,7 @@ class Uploads:
                             continue
                         f.close()
                         f = None
-                        await self._store_raw(job_id, index, spec, part, hasher.digest())
+                        await self._store_raw(job_id, index, spec, part, hasher.digest(), record=False)
                         part.unlink(missing_ok=True)
                         stored.append(index)
                 if len(stored) != count:
@@ -196,13 +191,16 @@ class Uploads:
                     part.unlink(missing_ok=True)
                 await self.m.record_uploads(job_id, stored)
 
-    async def _store_raw(self, job_id: str, index: int, spec: JobSpec, part: Path, digest: bytes) -> None:
-        """Store image ``index`` of a batch from its staged raw file (recorded by the caller)."""
+    async def _store_raw(
+        self, job_id: str, index: int, spec: JobSpec, part: Path, digest: bytes, *, record: bool = True
+    ) -> None:
+        """Store image ``index`` from its staged raw file and the digest made as it arrived;
+        ``record=False`` in a batch, whose caller saves the job record once for all its images."""
 
         def write(st: JobStore) -> None:
             st.write_bands(index, raw_bands(part, spec, st.band_rows), digest=digest)
 
-        await self.m.upload_image(job_id, index, write, record=False)
+        await self.m.upload_image(job_id, index, write, record=record)
 
     async def _encoded_image(
         self, request: Request, job_id: str, index: int, spec: JobSpec, limit: int
