@@ -19,7 +19,10 @@ intervals miss form a set whose hull only needs the ``g + 1`` largest interval
 starts and ``g + 1`` smallest ends (no full sort). An empty set prunes the box;
 otherwise the box **shrinks** to the hull, first in z (the lights' common
 direction, where slabs are thinnest), then in x and y, and its slabs are
-re-classified from fresh dot products.
+re-classified from fresh dot products. The x and y tests run only where z halved
+the box and it is at most ``_XY_GAP`` slabs from being pruned: elsewhere they
+rarely prune, and a split is cheaper than two more passes over the slabs (the
+search visits more boxes but spends less time: 1.2-1.4x on the DiLiGenT crops).
 
 In boxes with many crossing slabs (``_BIN_P``) the intervals are counted in
 bins instead (O(p) where keeping the extremes costs O(p g)); starts are binned
@@ -77,6 +80,8 @@ from maxfs.worker.problem import REL_TOL
 _STACK = 256  # DFS depth bound; a box this deep is far below ``hmin`` already
 _HMIN_REL = 1e-4  # enumerate the vertices of boxes narrower than this times the widest half-width
 _SHRINK_GAP = 48  # run the 1-D depth test in boxes at most this many slabs from being pruned
+_XY_GAP = 8  # the x and y tests only in boxes at most this many slabs from being pruned ...
+_Z_XY = 0.5  # ... and where the z test cut the box's z width to at most this fraction
 _BIN_P = 20  # in boxes with at least this many crossing slabs the 1-D test counts intervals in bins
 _BINS = 64  # at most this many bins (two per crossing slab)
 _SHRINK_KEEP = 0.9  # apply a shrink only when it cuts the box's width along the axis by 10 % or more
@@ -781,6 +786,8 @@ def _bnb(
             # 1-D depth tests: prune, or shrink the box to where it can still win
             pruned = False
             for t in range(3):
+                if t > 0 and f + p - best > _XY_GAP:  # x, y rarely prune far from it: split instead
+                    break
                 d = 2 if t == 0 else t - 1
                 # keep g + 1 = f + p - best ends: re-classification can only lower g
                 nbin = np.int64(0)
@@ -838,6 +845,8 @@ def _bnb(
                 dh = hn - h[d]
                 c[d] = c[d] + dc
                 h[d] = hn
+                if t == 0 and hn > _Z_XY * (hn - dh):  # z shrank a little: x, y would barely
+                    break
             if pruned:
                 continue
         if f + p - best <= _LP_GAP and p > _ENUM_P:
