@@ -56,3 +56,17 @@ def test_kth_smallest_is_sorted_value():
         v = rng.integers(0, 6, m).astype(float) if t % 2 else rng.random(m)
         k = int(rng.integers(0, m))
         assert _kth_smallest(v.copy(), np.empty(m), m, k) == np.sort(v)[k]
+
+
+@pytest.mark.filterwarnings("ignore::RuntimeWarning")  # NaN and inf observations
+@pytest.mark.parametrize("case", list(_cases()), ids=lambda c: c[0])
+def test_lts_fit_compiled_round_is_bit_identical(case, monkeypatch):
+    """lts_fit's compiled selection (numba loaded) and numpy's sort give the same n, bit for bit."""
+    _, I, sel, L = case
+    I = I.copy()
+    I[::37, 5] = np.nan  # NaN and inf observations, selected or not
+    I[::41, 7] = np.inf
+    got = noise.lts_fit(I, sel, L)
+    monkeypatch.setattr(noise, "_compiled_keep", lambda: None)
+    ref = noise.lts_fit(I, sel, L)
+    assert np.array_equal(got, ref, equal_nan=True)

@@ -194,6 +194,38 @@ def response_medians(I, sel, L, g, rounds):  # pragma: no cover - compiled
     return out
 
 
+@njit(cache=True, nogil=True)
+def lts_keep(I, P, sel, half, keep):  # pragma: no cover - compiled
+    """One round of :func:`worker.noise.lts_fit` after its refit, given the fit's predictions ``P``
+    (``n @ L.T``, from numpy): ``keep = sel & (|I - P| <= kth)``, ``kth`` the ``half``-th smallest
+    of the row with the unselected observations at inf (NaN last, as ``np.sort``). The same
+    arithmetic as numpy's (one subtraction and an absolute value), and selection is exact, so
+    ``keep`` is the same, bit for bit."""
+    P_, k = I.shape
+    r, buf, tmp = np.empty(k), np.empty(k), np.empty(k)
+    for p in range(P_):
+        h = half[p]
+        nfin = 0
+        nnan = 0
+        for i in range(k):
+            if sel[p, i]:
+                v = abs(I[p, i] - P[p, i])
+                r[i] = v
+                if np.isnan(v):
+                    nnan += 1
+                elif v < np.inf:
+                    buf[nfin] = v
+                    nfin += 1
+        if h - 1 < nfin:
+            kth = _kth_smallest(buf, tmp, nfin, h - 1)
+        elif h - 1 < k - nnan:
+            kth = np.inf
+        else:
+            kth = np.nan
+        for i in range(k):
+            keep[p, i] = sel[p, i] and r[i] <= kth
+
+
 def warm_up() -> None:
     """Compile (after an install) or load both kernels: what ``maxfs warm`` does for them."""
     L = np.array([[0.0, 0.0, 1.0], [0.6, 0.0, 0.8], [0.0, 0.6, 0.8], [-0.6, 0.0, 0.8]])
@@ -201,3 +233,4 @@ def warm_up() -> None:
     sel = I > 0
     lts_normals(I, sel, L, 3)
     response_medians(I, sel, L, 1.0, 3)
+    lts_keep(I, I, sel, np.array([3]), np.empty_like(sel))

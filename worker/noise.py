@@ -88,16 +88,41 @@ def _rows(usable: NDArray[np.bool_], sample: int, seed: int) -> NDArray[np.intp]
 def lts_fit(
     I: NDArray[np.float64], sel: NDArray[np.bool_], L: NDArray[np.float64], rounds: int = 3
 ) -> NDArray[np.float64]:
-    """Least trimmed squares ``n`` per pixel: refit on the closest half, ``rounds`` times."""
+    """Least trimmed squares ``n`` per pixel: refit on the closest half, ``rounds`` times.
+
+    Where numba is loaded anyway (the exact solver's tiles, the estimates), a round's selection
+    after numpy's refit is :func:`worker.lts_kernel.lts_keep`: the same residuals and kth value,
+    so the same ``keep`` and ``n`` bit for bit, without sorting every row; otherwise numpy's."""
     keep = sel.copy()
+    half = np.maximum(3, sel.sum(axis=1) // 2)
+    compiled = _compiled_keep() if I.shape[0] else None
+    if compiled is not None:
+        I = np.ascontiguousarray(I, np.float64)
+        sel = np.ascontiguousarray(sel, np.bool_)
+        half = np.ascontiguousarray(half, np.int64)
     for _ in range(rounds):
         n = refit(I, keep, L)
+        if compiled is not None:
+            keep = np.empty(sel.shape, np.bool_)
+            compiled(I, np.ascontiguousarray(n @ L.T), sel, half, keep)
+            continue
         r = np.abs(I - n @ L.T)
         r[~sel] = np.inf
-        half = np.maximum(3, sel.sum(axis=1) // 2)
         kth = np.take_along_axis(np.sort(r, axis=1), (half - 1)[:, None], axis=1)  # per-row kth
         keep = sel & (r <= kth)
     return refit(I, keep, L)
+
+
+def _compiled_keep() -> Callable | None:
+    """:func:`worker.lts_kernel.lts_keep` if numba is already imported, else None (an l2 or MILP
+    tile does not load numba for it)."""
+    import sys
+
+    if "numba" not in sys.modules:
+        return None
+    from maxfs.worker.lts_kernel import lts_keep
+
+    return lts_keep
 
 
 def _lts(I: NDArray[np.float64], sel: NDArray[np.bool_], L: NDArray[np.float64]) -> NDArray[np.float64]:
