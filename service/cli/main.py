@@ -333,6 +333,9 @@ def cmd_warm(args: argparse.Namespace) -> int:
     load = load_kernels()
     how = "compiled and cached" if load.compiled else "loaded from the cache"
     print(f"solver kernels ready: {how} in {load.seconds:.1f} s")
+    from maxfs.worker import lts_kernel  # the response estimate's LTS
+
+    lts_kernel.warm_up()
     # the depth step's kernels too (a few seconds to compile once after an install), for the normals'
     # float32 as a run stores them
     from maxfs.worker import depth_scenes

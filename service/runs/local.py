@@ -398,6 +398,74 @@ def calibration_messages(
     return [f"{f.check}: {f.message}" for f in found if f.message]
 
 
+class _LinalgAttributes:
+    """An import hook, for one import: when ``scipy.linalg`` is imported for real after
+    :func:`preload_numba_blas`, its ``cython_blas`` and ``cython_lapack`` attributes are set
+    (the submodules are already in ``sys.modules``, so importing the package does not set them)."""
+
+    def find_spec(self, name: str, path: object, target: object = None) -> object:
+        import importlib.util
+        import sys
+
+        if name != "scipy.linalg":
+            return None
+        sys.meta_path.remove(self)
+        spec = importlib.util.find_spec(name)
+        if spec is None or spec.loader is None:
+            return spec
+        run = spec.loader.exec_module
+
+        def exec_module(module: object) -> None:
+            run(module)
+            for sub in ("cython_blas", "cython_lapack"):
+                if f"scipy.linalg.{sub}" in sys.modules:
+                    setattr(module, sub, sys.modules[f"scipy.linalg.{sub}"])
+
+        spec.loader.exec_module = exec_module  # type: ignore[method-assign]
+        return spec
+
+
+def preload_numba_blas() -> bool:
+    """Import ``scipy.linalg.cython_blas`` and ``cython_lapack`` without the rest of
+    ``scipy.linalg``, before numba needs them.
+
+    numba's first compile or cache load imports ``scipy.linalg.cython_blas`` to see whether a
+    BLAS is there (``numba.np.linalg.ensure_blas``); the import runs ``scipy.linalg``'s
+    ``__init__`` too, 0.25-0.3 CPU s of Python (scipy's array-API layer, docstrings), in every
+    run, l2 included (the depth step loads numba), for two extension modules that import
+    nothing of it. Here the package is stood in for while they load; a real ``import
+    scipy.linalg`` later still gets the whole package, with both attributes
+    (:class:`_LinalgAttributes`). False (nothing done) if scipy.linalg is already imported or
+    this scipy lays its modules out otherwise."""
+    import importlib.util
+    import sys
+    import types
+
+    if "scipy.linalg" in sys.modules or "scipy.linalg.cython_blas" in sys.modules:
+        return False
+    try:
+        import scipy
+
+        spec = importlib.util.find_spec("scipy.linalg")
+        if spec is None or not spec.submodule_search_locations:
+            return False
+        stand_in = types.ModuleType("scipy.linalg")
+        stand_in.__path__ = list(spec.submodule_search_locations)
+        sys.modules["scipy.linalg"] = stand_in
+        try:
+            import scipy.linalg.cython_blas
+            import scipy.linalg.cython_lapack
+        finally:
+            del sys.modules["scipy.linalg"]
+            scipy.__dict__.pop("linalg", None)
+    except Exception:  # anything unexpected: numba imports scipy.linalg itself, as before
+        for sub in ("scipy.linalg.cython_blas", "scipy.linalg.cython_lapack"):
+            sys.modules.pop(sub, None)
+        return False
+    sys.meta_path.insert(0, _LinalgAttributes())
+    return True
+
+
 def run_folder(
     ds: Dataset,
     out: Path,
@@ -455,6 +523,7 @@ def run_folder(
         if finished_before(store):
             return store, load_record(out)
         with tm.phase("imports"):  # the solver (numba) only now: a finished job never loads it
+            preload_numba_blas()
             from maxfs.service.runs.inprocess import run_in_process
             from maxfs.worker.task import load_kernels
 
