@@ -762,6 +762,11 @@ def console() -> None:
         code = main()
     except KeyboardInterrupt:  # between main's handlers, e.g. while one prints
         _interrupted()
+    # idle pool threads (the shard encoders of a store written, Dask's offload thread) are no work:
+    # the pools end them first, as Python's own exit does (a task still running is waited for)
+    from concurrent.futures import thread as pool_threads
+
+    pool_threads._python_exit()
     busy = [t for t in threading.enumerate() if t is not threading.main_thread() and not t.daemon]
     if busy:
         sys.exit(code)
