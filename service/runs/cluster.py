@@ -125,7 +125,7 @@ async def start_cluster(settings: Settings, *, log_dir: Path | None = None) -> D
         client = await Client(settings.scheduler, asynchronous=True)
         dc = DaskCluster(kind, client, settings)
     elif kind == "local":
-        dc = await _start_local(settings)
+        return await _start_local(settings)  # its workers loaded the kernels before they joined
     else:
         dc = await _start_slurm(settings, log_dir)
     try:
