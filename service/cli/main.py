@@ -13,7 +13,7 @@ from typing import Any
 
 from maxfs.service.cli.common import EXIT_NOT_DONE, EXIT_SERVER, EXIT_STATUSES, EXIT_USAGE
 from maxfs.service.cli.common import make_client as _client
-from maxfs.service.settings import LOOPBACK, Settings, cluster_settings, runs_in_process
+from maxfs.service.settings import LOOPBACK, Settings, cluster_kind, cluster_settings, runs_in_process
 from maxfs.storage.errors import ConflictError, InvalidInputError, MaxfsError
 from maxfs.storage.options import INTRINSICS, SOLVE_OPTIONS
 from maxfs.storage.params import DEPTH_FIELDS
@@ -149,13 +149,19 @@ def _dataset(args: argparse.Namespace) -> Any:
 def _prefetch(ds: Any, out: Path, settings: Settings, scheduler: str, cluster: str, workers: int) -> Any:
     """Start decoding the stack (:class:`storage.stack.StackReader`) when the run will surely
     need it in memory: a fresh output, the in-process path (no cluster, a stack of at most
-    ``MAXFS_IN_PROCESS_BYTES``); None otherwise (a re-run decodes nothing)."""
+    ``MAXFS_IN_PROCESS_BYTES``); None otherwise (a re-run decodes nothing). A fresh output on the
+    embedded Dask cluster starts its workers' fork server instead, which loads the solver while
+    this process imports the run's modules (the cluster start waits for it)."""
     from maxfs.storage.stack import StackReader
 
     fresh = not out.exists() or (out.is_dir() and not any(out.iterdir()))
     chosen = cluster_settings(scheduler, workers, cluster)
     if fresh and runs_in_process(chosen, ds.nbytes, settings.in_process_bytes):
         return StackReader(ds, workers)
+    if fresh and cluster_kind(chosen) == "local":
+        from maxfs.service.runs import forkserver
+
+        forkserver.launch()
     return None
 
 
@@ -765,6 +771,11 @@ def console() -> None:
         code = main()
     except KeyboardInterrupt:  # between main's handlers, e.g. while one prints
         _interrupted()
+    # idle pool threads (the shard encoders of a store written, Dask's offload thread) are no work:
+    # the pools end them first, as Python's own exit does (a task still running is waited for)
+    from concurrent.futures import thread as pool_threads
+
+    pool_threads._python_exit()
     busy = [t for t in threading.enumerate() if t is not threading.main_thread() and not t.daemon]
     if busy:
         sys.exit(code)

@@ -14,7 +14,7 @@ import shutil
 import threading
 import time
 from collections.abc import Callable, Iterable
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor, wait
 from dataclasses import replace
 from pathlib import Path
 
@@ -233,7 +233,7 @@ async def _ingest_and_run(
     if early and cluster_kind(settings) == "local":
         from maxfs.service.runs import forkserver
 
-        forkserver.launch()  # loads the solver for the workers while Dask is imported here
+        forkserver.launch()  # unless `maxfs run` did: loads the solver for the workers meanwhile
 
     from maxfs.service.runs.cluster import DaskCluster, start_cluster  # imports distributed
     from maxfs.service.runs.orchestrator import run_job
@@ -244,6 +244,7 @@ async def _ingest_and_run(
     starting = asyncio.ensure_future(start_cluster(settings, log_dir=logs)) if early else None
     stop = threading.Event()
     dc: DaskCluster | None = None
+    depth_pool = ThreadPoolExecutor(1, thread_name_prefix="maxfs-depth")  # one after the other
     sample = SampleWindows(ds)
     try:
         t0 = time.perf_counter()
@@ -271,6 +272,9 @@ async def _ingest_and_run(
             t0 = time.perf_counter()
             await asyncio.to_thread(_estimate_eps, store, reader)
             tm.add("eps estimate", time.perf_counter() - t0)
+        # this process integrates depth once the tiles are done: its kernels load meanwhile, while
+        # the cluster starts (this process waits for the workers' fork server then)
+        depth_pool.submit(load_depth_kernels, store.params)
         t0 = time.perf_counter()
         dc = await (starting or start_cluster(settings, log_dir=logs))
         starting = None
@@ -281,7 +285,7 @@ async def _ingest_and_run(
         if rec.state is JobState.DONE:
             closing, dc = asyncio.ensure_future(dc.close()), None
             try:
-                found = await asyncio.to_thread(finish, out, tm, reader)
+                found = await asyncio.to_thread(finish_beside_depth, out, tm, reader, depth_pool)
             finally:
                 await closing
             rec.calibration = [*(f"input folder: {n}" for n in ds.notes), *found]
@@ -291,10 +295,39 @@ async def _ingest_and_run(
         if starting is not None:  # never cancelled half-way: a cluster half started leaves processes
             with contextlib.suppress(Exception):
                 dc = await starting
+        depth_pool.shutdown(wait=False)  # a kernel load still running ends by itself
         if dc is not None:
             t0 = time.perf_counter()
             await dc.close()
             tm.add("cluster stop", time.perf_counter() - t0)
+
+
+def load_depth_kernels(params: JobParams) -> None:
+    """Load the kernels of the depth step these parameters ask for (numba's cache; the first
+    kernels loaded in a process also cost numba's own start), on a 16 x 16 sphere: what the
+    Dask path's process would otherwise pay when it integrates the normals. A failure is left to
+    the depth step itself."""
+    from maxfs.service.results.research import camera_of
+    from maxfs.storage.options import DepthMethod
+    from maxfs.worker import depth_scenes
+    from maxfs.worker.depth import integrate
+
+    try:
+        opts = params.depth_options()
+        if opts["depth"] == DepthMethod.NONE:
+            return
+        scene = depth_scenes.sphere_ortho(16)
+        integrate(
+            scene.normal.astype(np.float32),
+            scene.mask,
+            method=opts["depth"],
+            camera=camera_of(opts),
+            distance=opts["distance"],
+            k=opts["depth_k"],
+            max_iterations=2,
+        )
+    except Exception:
+        log.debug("loading the depth kernels failed; the depth step tries again", exc_info=True)
 
 
 class SampleWindows:
@@ -378,6 +411,41 @@ def finish(
         finish_results(out, normal=arrays["normal"])
     with tm.phase("calibration checks"):
         return calibration_messages(out, read_images, arrays)
+
+
+def finish_beside_depth(
+    out: Path,
+    timings: Timings,
+    read_images: Callable[[Tile], NDArray] | None = None,
+    depth_pool: ThreadPoolExecutor | None = None,
+) -> list[str]:
+    """:func:`finish` with the depth step on a thread of its own (of ``depth_pool``, after what it
+    runs already: :func:`load_depth_kernels`) beside the previews and the calibration checks: the
+    Dask path, whose workers are done, where this process alone would leave a core idle. The
+    depth step writes only its own array and ``previews/depth.png``; the outputs are read once,
+    as there. Its timings row is what the previews and the checks left of it. Every step has
+    ended when this returns or raises."""
+    from maxfs.service.results.research import finish_results
+
+    pool = depth_pool or ThreadPoolExecutor(1, thread_name_prefix="maxfs-depth")
+    t0 = time.perf_counter()
+    store = JobStore.open(out, mode="r")
+    arrays = preview_inputs(store)
+    depth = pool.submit(finish_results, out, normal=arrays["normal"].copy())
+    try:
+        write_previews(store, arrays)
+        t1 = time.perf_counter()
+        found = calibration_messages(out, read_images, arrays)
+    finally:
+        t2 = time.perf_counter()
+        wait([depth])
+    timings.add("previews", t1 - t0)
+    timings.add("depth and derived results", time.perf_counter() - t2)
+    timings.add("calibration checks", t2 - t1)
+    depth.result()
+    if depth_pool is None:
+        pool.shutdown()
+    return found
 
 
 def calibration_messages(
