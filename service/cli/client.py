@@ -12,19 +12,21 @@ import zipfile
 from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import httpx
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import ValidationError
 
-from maxfs.service.http.models import ErrorBody, JobStatus
 from maxfs.service.http.statuses import error_for_status
-from maxfs.storage.datasets import Dataset
 from maxfs.storage.errors import ConflictError, InvalidInputError, MaxfsError
-from maxfs.storage.inputs import load_folder
 from maxfs.storage.records import FINAL_STATES, JobState
+
+if TYPE_CHECKING:
+    # imported where used: the pydantic models take ~0.3 s to build and the dataset readers
+    # ~0.3 s to import, on every `maxfs submit`, `status` or `fetch` that starts
+    from maxfs.service.http.models import JobStatus
+    from maxfs.storage.datasets import Dataset
 
 #: Response header that marks partial results (the server's :data:`service.http.models.PARTIAL_HEADER`).
 PARTIAL_HEADER = "x-maxfs-partial"
@@ -33,6 +35,8 @@ UPLOAD_PIECE = 1 << 20
 #: Images up to this size go several to a request (``PUT /jobs/{id}/images``), at most this
 #: many bytes per request: a request costs ~10 ms whatever its size, a small image less.
 BATCH_BYTES = 8 << 20
+#: Seconds a status request of :meth:`MaxfsClient.wait` lets the server wait for a change.
+LONG_POLL = 10.0
 
 
 def submission_label(ds: Dataset, meta: dict[str, Any]) -> str | None:
@@ -99,6 +103,10 @@ class MaxfsClient:
     def _call(self, method: str, url: str, **kw: Any) -> httpx.Response:
         r = self.http.request(method, url, **kw)
         if r.status_code >= 400:
+            from pydantic import ValidationError
+
+            from maxfs.service.http.models import ErrorBody
+
             try:  # every error the server makes is an ErrorBody; a proxy's may not be
                 detail = ErrorBody.model_validate_json(r.content).detail
             except ValidationError:
@@ -151,8 +159,12 @@ class MaxfsClient:
     def start(self, job_id: str) -> dict[str, Any]:
         return self._call("POST", f"/jobs/{job_id}/start").json()
 
-    def status(self, job_id: str) -> dict[str, Any]:
-        return self._call("GET", f"/jobs/{job_id}").json()
+    def status(self, job_id: str, wait: float = 0) -> dict[str, Any]:
+        """The job's status; with ``wait`` (seconds), a queued or running job's answer comes when
+        its status next changes, or after ``wait`` seconds (a server older than that answers
+        at once)."""
+        params = {"wait": f"{wait:g}"} if wait > 0 else None
+        return self._call("GET", f"/jobs/{job_id}", params=params).json()
 
     def job(self, job_id: str) -> JobStatus:
         """The job's status checked against, and typed as, the model the server documents
@@ -165,6 +177,8 @@ class MaxfsClient:
 
     def job_list(self) -> list[JobStatus]:
         """The jobs this token may see, oldest first, as typed models (:meth:`jobs`: as dicts)."""
+        from maxfs.service.http.models import JobStatus
+
         return [JobStatus.model_validate(st) for st in self.jobs()]
 
     def cancel(self, job_id: str) -> dict[str, Any]:
@@ -181,17 +195,22 @@ class MaxfsClient:
         timeout: float | None = None,
         on_status: Callable[[dict[str, Any]], None] | None = None,
     ) -> dict[str, Any]:
-        """Poll until the job is done, failed or cancelled."""
+        """Until the job is done, failed or cancelled: its status, each change of it as the
+        server sees it (``GET /jobs/{id}?wait=S``: the end is seen the moment it comes), at
+        most one request per ``poll`` seconds (a server without ``wait`` answers at once, and
+        is then asked every ``poll`` seconds)."""
         t0 = time.monotonic()
         while True:
-            st = self.status(job_id)
+            asked = time.monotonic()
+            long = LONG_POLL if timeout is None else max(0.0, min(LONG_POLL, t0 + timeout - asked))
+            st = self.status(job_id, wait=long)
             if on_status:
                 on_status(st)
             if st["state"] in FINAL_STATES:
                 return st
             if timeout is not None and time.monotonic() - t0 > timeout:
                 raise TimeoutError(f"job {job_id} still {st['state']} after {timeout} s")
-            time.sleep(poll)
+            time.sleep(max(0.0, poll - (time.monotonic() - asked)))
 
     def fetch_array(self, job_id: str, name: str) -> NDArray:
         r = self._call("GET", f"/jobs/{job_id}/results/{name}.npy")
@@ -287,6 +306,9 @@ class MaxfsClient:
         ``"new"`` ignored (a new job), ``"reuse"`` returned, ``"refuse"`` a :class:`ConflictError`
         naming it (``maxfs submit`` without ``--reuse``: no silent re-upload and recompute).
         """
+        from maxfs.storage.datasets import Dataset
+        from maxfs.storage.inputs import load_folder
+
         if existing not in ("new", "reuse", "refuse"):
             raise ValueError(f"existing must be new, reuse or refuse, got {existing!r}")
         ds = folder if isinstance(folder, Dataset) else load_folder(folder)
