@@ -10,7 +10,7 @@ import tempfile
 import time
 import zipfile
 from collections.abc import Callable, Iterator
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, as_completed, wait
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -35,6 +35,9 @@ UPLOAD_PIECE = 1 << 20
 #: Images up to this size go several to a request (``PUT /jobs/{id}/images``), at most this
 #: many bytes per request: a request costs ~10 ms whatever its size, a small image less.
 BATCH_BYTES = 8 << 20
+#: Upload requests :meth:`MaxfsClient.submit_folder` has in flight at once (each server user
+#: may have ``MAXFS_MAX_UPLOADS_PER_USER``, 8 by default).
+UPLOADS_IN_FLIGHT = 2
 #: Seconds a status request of :meth:`MaxfsClient.wait` lets the server wait for a change.
 LONG_POLL = 10.0
 
@@ -293,8 +296,9 @@ class MaxfsClient:
 
         Small images go several to a request (consecutive indices, at most :data:`BATCH_BYTES`
         per request, :func:`upload_batches`; one by one to a server without the batch upload),
-        larger ones one per request. At most two requests' decoded images are in memory at a
-        time, those being sent and the next (NPY stacks are read one image at a time).
+        larger ones one per request, two requests in flight at once (:data:`UPLOADS_IN_FLIGHT`),
+        each decoded on its own thread. At most two requests' decoded images are in memory at a
+        time, those being sent (NPY stacks are read one image at a time).
 
         **Resumable**: the job is labelled with a digest of the folder's files (paths, sizes,
         times), the selection and the parameters. If this user already has an unfinished job with
@@ -359,32 +363,47 @@ class MaxfsClient:
             sent = ds.k - len(missing)
             itemsize = np.dtype(ds.dtype).itemsize
             batches = upload_batches(missing, ds.height * ds.width * (ds.channels or 1) * itemsize)
-            batched = True  # until a server without the batch upload says otherwise
+            batched = [True]  # until a server without the batch upload says otherwise
 
-            def read(batch: list[int]) -> list[NDArray]:
-                return [ds.read(i) for i in batch]
+            def send(batch: list[int]) -> int:
+                """Decode a request's images (decoders release the GIL) and send them."""
+                images = [ds.read(i) for i in batch]
+                if len(batch) > 1 and batched[0]:
+                    try:
+                        self.upload_images(job_id, batch[0], images)
+                        return len(batch)
+                    except MaxfsError as e:
+                        if getattr(e, "http_status", None) not in (404, 405):
+                            raise
+                        batched[0] = False  # an older server (nothing stored): one request per image
+                for i, image in zip(batch, images, strict=True):
+                    self.upload_image(job_id, i, image)
+                return len(batch)
 
-            # the next batch is decoded while this one is sent (decoders release the GIL)
-            with ThreadPoolExecutor(1, thread_name_prefix="maxfs-read") as pool:
-                ahead = pool.submit(read, batches[0]) if batches else None
-                for n, batch in enumerate(batches):
-                    assert ahead is not None
-                    images = ahead.result()
-                    ahead = pool.submit(read, batches[n + 1]) if n + 1 < len(batches) else None
-                    if len(batch) > 1 and batched:
-                        try:
-                            self.upload_images(job_id, batch[0], images)
-                        except MaxfsError as e:
-                            if getattr(e, "http_status", None) not in (404, 405):
-                                raise
-                            batched = False  # an older server: one request per image
-                    if len(batch) == 1 or not batched:
-                        for i, image in zip(batch, images, strict=True):
-                            self.upload_image(job_id, i, image)
-                    del images
-                    sent += len(batch)
-                    if on_upload:
-                        on_upload(sent, ds.k)
+            # UPLOADS_IN_FLIGHT requests at once, each decoded on its own thread: the server
+            # stores one request's images while the next arrives, and the client decodes one
+            # while it sends the other
+            with ThreadPoolExecutor(UPLOADS_IN_FLIGHT, thread_name_prefix="maxfs-upload") as pool:
+                pending: set[Future[int]] = set()
+                todo = iter(batches)
+                try:
+                    for batch in todo:
+                        pending.add(pool.submit(send, batch))
+                        if len(pending) < UPLOADS_IN_FLIGHT:
+                            continue
+                        finished, pending = wait(pending, return_when=FIRST_COMPLETED)
+                        for f in finished:
+                            sent += f.result()
+                            if on_upload:
+                                on_upload(sent, ds.k)
+                    for f in as_completed(pending):
+                        pending.discard(f)
+                        sent += f.result()
+                        if on_upload:
+                            on_upload(sent, ds.k)
+                finally:
+                    for f in pending:  # after an error: nothing more starts; those in flight end
+                        f.cancel()
             if ds.mask is not None:
                 self.upload_mask(job_id, ds.mask)
             self.start(job_id)
