@@ -14,8 +14,9 @@ another checkout's ``REPO/.venv/bin/maxfs`` in turn with this one, for before/af
 - ``dask``: ``maxfs run`` on its Dask path (``MAXFS_IN_PROCESS_BYTES=0``) against the in-process
   path on a 1-megapixel 16-bit job (:func:`bench.scale.write_stack`, ``--mp-k`` images);
 - ``upload``: HTTP upload MB/s of raw and of PNG bodies (16-bit 1000 x 1000 images), one
-  request per image, and of raw images several to a request as ``maxfs submit`` sends them
-  (``PUT /jobs/{id}/images``; "-" for a version without it).
+  request per image (and PNG with two requests in flight, as two threads of a client send them:
+  the server decodes one while it stores the other), and of raw images several to a request as
+  ``maxfs submit`` sends them (``PUT /jobs/{id}/images``; "-" for a version without it).
 
 Run: ``python -m bench.service`` (``--only paths,server,dask,upload``; ``--size``, ``--k``,
 ``--tile`` change the paths table's job).
@@ -33,6 +34,7 @@ import sys
 import tempfile
 import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -288,7 +290,7 @@ def upload_rates(args: argparse.Namespace, tmp: Path) -> None:
     servers = {label: serve(b, tmp / f"up-{label}", 1) for label, b in versions(args).items()}
     try:
 
-        def send(url: str, raw: bool, batched: bool = False) -> float:
+        def send(url: str, raw: bool, batched: bool = False, in_flight: int = 1) -> float:
             with MaxfsClient(url) as c:
                 job = c.create_job(**meta)["id"]
                 t0 = time.perf_counter()
@@ -299,7 +301,8 @@ def upload_rates(args: argparse.Namespace, tmp: Path) -> None:
                     except MaxfsError:
                         c.delete(job)
                         return float("nan")  # a version without the batch upload
-                for i in range(k if not batched else 0):
+
+                def one(i: int) -> None:
                     if raw:
                         c.upload_image(job, i, images[i])
                     else:
@@ -307,6 +310,9 @@ def upload_rates(args: argparse.Namespace, tmp: Path) -> None:
                             f"/jobs/{job}/images/{i}", content=pngs[i], headers={"Content-Type": "image/png"}
                         )
                         assert r.status_code == 200, r.text
+
+                with ThreadPoolExecutor(in_flight) as pool:  # in_flight requests at a time
+                    list(pool.map(one, range(k if not batched else 0)))
                 wall = time.perf_counter() - t0
                 c.delete(job)
             return (images.nbytes if raw else sum(map(len, pngs))) / 2**20 / wall
@@ -316,6 +322,7 @@ def upload_rates(args: argparse.Namespace, tmp: Path) -> None:
             cases[f"{label} raw"] = lambda r, u=srv.url: send(u, True)
             cases[f"{label} png"] = lambda r, u=srv.url: send(u, False)
             cases[f"{label} batched"] = lambda r, u=srv.url: send(u, True, batched=True)
+            cases[f"{label} png2"] = lambda r, u=srv.url: send(u, False, in_flight=2)
         got = interleaved(args.runs, cases)
     finally:
         for srv in servers.values():
@@ -325,8 +332,8 @@ def upload_rates(args: argparse.Namespace, tmp: Path) -> None:
         b = got[f"{label} batched"]
         batched = "-" if any(np.isnan(b)) else spread(b)
         print(
-            f"| {label} | {spread(got[f'{label} raw'])} | {spread(got[f'{label} png'])} | {batched} "
-            f"| {ratio:.2f} |",
+            f"| {label} | {spread(got[f'{label} raw'])} | {spread(got[f'{label} png'])} "
+            f"| {spread(got[f'{label} png2'])} | {batched} | {ratio:.2f} |",
             flush=True,
         )
 
@@ -378,8 +385,8 @@ def main() -> None:
                 f"MB/s of request body, min / median / max of {args.runs} interleaved runs\n"
             )
             print(
-                "| version | raw MB/s | PNG MB/s | raw, batched MB/s | raw / PNG bytes |\n"
-                "|---|---|---|---|---|",
+                "| version | raw MB/s | PNG MB/s | PNG, 2 in flight MB/s | raw, batched MB/s "
+                "| raw / PNG bytes |\n|---|---|---|---|---|---|",
                 flush=True,
             )
             upload_rates(args, tmp)

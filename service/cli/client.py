@@ -10,21 +10,23 @@ import tempfile
 import time
 import zipfile
 from collections.abc import Callable, Iterator
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, as_completed, wait
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import httpx
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import ValidationError
 
-from maxfs.service.http.models import ErrorBody, JobStatus
 from maxfs.service.http.statuses import error_for_status
-from maxfs.storage.datasets import Dataset
 from maxfs.storage.errors import ConflictError, InvalidInputError, MaxfsError
-from maxfs.storage.inputs import load_folder
 from maxfs.storage.records import FINAL_STATES, JobState
+
+if TYPE_CHECKING:
+    # imported where used: the pydantic models take ~0.3 s to build and the dataset readers
+    # ~0.3 s to import, on every `maxfs submit`, `status` or `fetch` that starts
+    from maxfs.service.http.models import JobStatus
+    from maxfs.storage.datasets import Dataset
 
 #: Response header that marks partial results (the server's :data:`service.http.models.PARTIAL_HEADER`).
 PARTIAL_HEADER = "x-maxfs-partial"
@@ -33,6 +35,11 @@ UPLOAD_PIECE = 1 << 20
 #: Images up to this size go several to a request (``PUT /jobs/{id}/images``), at most this
 #: many bytes per request: a request costs ~10 ms whatever its size, a small image less.
 BATCH_BYTES = 8 << 20
+#: Upload requests :meth:`MaxfsClient.submit_folder` has in flight at once (each server user
+#: may have ``MAXFS_MAX_UPLOADS_PER_USER``, 8 by default).
+UPLOADS_IN_FLIGHT = 2
+#: Seconds a status request of :meth:`MaxfsClient.wait` lets the server wait for a change.
+LONG_POLL = 10.0
 
 
 def submission_label(ds: Dataset, meta: dict[str, Any]) -> str | None:
@@ -99,6 +106,10 @@ class MaxfsClient:
     def _call(self, method: str, url: str, **kw: Any) -> httpx.Response:
         r = self.http.request(method, url, **kw)
         if r.status_code >= 400:
+            from pydantic import ValidationError
+
+            from maxfs.service.http.models import ErrorBody
+
             try:  # every error the server makes is an ErrorBody; a proxy's may not be
                 detail = ErrorBody.model_validate_json(r.content).detail
             except ValidationError:
@@ -151,8 +162,12 @@ class MaxfsClient:
     def start(self, job_id: str) -> dict[str, Any]:
         return self._call("POST", f"/jobs/{job_id}/start").json()
 
-    def status(self, job_id: str) -> dict[str, Any]:
-        return self._call("GET", f"/jobs/{job_id}").json()
+    def status(self, job_id: str, wait: float = 0) -> dict[str, Any]:
+        """The job's status; with ``wait`` (seconds), a queued or running job's answer comes when
+        its status next changes, or after ``wait`` seconds (a server older than that answers
+        at once)."""
+        params = {"wait": f"{wait:g}"} if wait > 0 else None
+        return self._call("GET", f"/jobs/{job_id}", params=params).json()
 
     def job(self, job_id: str) -> JobStatus:
         """The job's status checked against, and typed as, the model the server documents
@@ -165,6 +180,8 @@ class MaxfsClient:
 
     def job_list(self) -> list[JobStatus]:
         """The jobs this token may see, oldest first, as typed models (:meth:`jobs`: as dicts)."""
+        from maxfs.service.http.models import JobStatus
+
         return [JobStatus.model_validate(st) for st in self.jobs()]
 
     def cancel(self, job_id: str) -> dict[str, Any]:
@@ -181,17 +198,22 @@ class MaxfsClient:
         timeout: float | None = None,
         on_status: Callable[[dict[str, Any]], None] | None = None,
     ) -> dict[str, Any]:
-        """Poll until the job is done, failed or cancelled."""
+        """Until the job is done, failed or cancelled: its status, each change of it as the
+        server sees it (``GET /jobs/{id}?wait=S``: the end is seen the moment it comes), at
+        most one request per ``poll`` seconds (a server without ``wait`` answers at once, and
+        is then asked every ``poll`` seconds)."""
         t0 = time.monotonic()
         while True:
-            st = self.status(job_id)
+            asked = time.monotonic()
+            long = LONG_POLL if timeout is None else max(0.0, min(LONG_POLL, t0 + timeout - asked))
+            st = self.status(job_id, wait=long)
             if on_status:
                 on_status(st)
             if st["state"] in FINAL_STATES:
                 return st
             if timeout is not None and time.monotonic() - t0 > timeout:
                 raise TimeoutError(f"job {job_id} still {st['state']} after {timeout} s")
-            time.sleep(poll)
+            time.sleep(max(0.0, poll - (time.monotonic() - asked)))
 
     def fetch_array(self, job_id: str, name: str) -> NDArray:
         r = self._call("GET", f"/jobs/{job_id}/results/{name}.npy")
@@ -274,8 +296,9 @@ class MaxfsClient:
 
         Small images go several to a request (consecutive indices, at most :data:`BATCH_BYTES`
         per request, :func:`upload_batches`; one by one to a server without the batch upload),
-        larger ones one per request. At most two requests' decoded images are in memory at a
-        time, those being sent and the next (NPY stacks are read one image at a time).
+        larger ones one per request, two requests in flight at once (:data:`UPLOADS_IN_FLIGHT`),
+        each decoded on its own thread. At most two requests' decoded images are in memory at a
+        time, those being sent (NPY stacks are read one image at a time).
 
         **Resumable**: the job is labelled with a digest of the folder's files (paths, sizes,
         times), the selection and the parameters. If this user already has an unfinished job with
@@ -287,6 +310,9 @@ class MaxfsClient:
         ``"new"`` ignored (a new job), ``"reuse"`` returned, ``"refuse"`` a :class:`ConflictError`
         naming it (``maxfs submit`` without ``--reuse``: no silent re-upload and recompute).
         """
+        from maxfs.storage.datasets import Dataset
+        from maxfs.storage.inputs import load_folder
+
         if existing not in ("new", "reuse", "refuse"):
             raise ValueError(f"existing must be new, reuse or refuse, got {existing!r}")
         ds = folder if isinstance(folder, Dataset) else load_folder(folder)
@@ -337,32 +363,47 @@ class MaxfsClient:
             sent = ds.k - len(missing)
             itemsize = np.dtype(ds.dtype).itemsize
             batches = upload_batches(missing, ds.height * ds.width * (ds.channels or 1) * itemsize)
-            batched = True  # until a server without the batch upload says otherwise
+            batched = [True]  # until a server without the batch upload says otherwise
 
-            def read(batch: list[int]) -> list[NDArray]:
-                return [ds.read(i) for i in batch]
+            def send(batch: list[int]) -> int:
+                """Decode a request's images (decoders release the GIL) and send them."""
+                images = [ds.read(i) for i in batch]
+                if len(batch) > 1 and batched[0]:
+                    try:
+                        self.upload_images(job_id, batch[0], images)
+                        return len(batch)
+                    except MaxfsError as e:
+                        if getattr(e, "http_status", None) not in (404, 405):
+                            raise
+                        batched[0] = False  # an older server (nothing stored): one request per image
+                for i, image in zip(batch, images, strict=True):
+                    self.upload_image(job_id, i, image)
+                return len(batch)
 
-            # the next batch is decoded while this one is sent (decoders release the GIL)
-            with ThreadPoolExecutor(1, thread_name_prefix="maxfs-read") as pool:
-                ahead = pool.submit(read, batches[0]) if batches else None
-                for n, batch in enumerate(batches):
-                    assert ahead is not None
-                    images = ahead.result()
-                    ahead = pool.submit(read, batches[n + 1]) if n + 1 < len(batches) else None
-                    if len(batch) > 1 and batched:
-                        try:
-                            self.upload_images(job_id, batch[0], images)
-                        except MaxfsError as e:
-                            if getattr(e, "http_status", None) not in (404, 405):
-                                raise
-                            batched = False  # an older server: one request per image
-                    if len(batch) == 1 or not batched:
-                        for i, image in zip(batch, images, strict=True):
-                            self.upload_image(job_id, i, image)
-                    del images
-                    sent += len(batch)
-                    if on_upload:
-                        on_upload(sent, ds.k)
+            # UPLOADS_IN_FLIGHT requests at once, each decoded on its own thread: the server
+            # stores one request's images while the next arrives, and the client decodes one
+            # while it sends the other
+            with ThreadPoolExecutor(UPLOADS_IN_FLIGHT, thread_name_prefix="maxfs-upload") as pool:
+                pending: set[Future[int]] = set()
+                todo = iter(batches)
+                try:
+                    for batch in todo:
+                        pending.add(pool.submit(send, batch))
+                        if len(pending) < UPLOADS_IN_FLIGHT:
+                            continue
+                        finished, pending = wait(pending, return_when=FIRST_COMPLETED)
+                        for f in finished:
+                            sent += f.result()
+                            if on_upload:
+                                on_upload(sent, ds.k)
+                    for f in as_completed(pending):
+                        pending.discard(f)
+                        sent += f.result()
+                        if on_upload:
+                            on_upload(sent, ds.k)
+                finally:
+                    for f in pending:  # after an error: nothing more starts; those in flight end
+                        f.cancel()
             if ds.mask is not None:
                 self.upload_mask(job_id, ds.mask)
             self.start(job_id)

@@ -52,6 +52,8 @@ log = logging.getLogger("maxfs.jobs")
 TEMP_PREFIX = ".maxfs-"
 #: Jobs whose store :meth:`JobManager._upload_store` keeps open for their uploads.
 UPLOAD_STORES = 64
+#: The longest a status request may wait for a job's record to change (``GET /jobs/{id}?wait=S``).
+MAX_STATUS_WAIT = 30.0
 
 
 def owns(user: User, rec: JobRecord) -> bool:
@@ -94,9 +96,14 @@ class JobManager:
         #: records still say queued or running; :meth:`record` answers failed (and writes it
         #: once it can), so status tells the truth and a start resumes them
         self.unrecorded: dict[str, str] = {}
+        #: per job, the event that status requests waiting for its next change wait on
+        #: (:meth:`wait_change`); set and dropped by :meth:`changed`
+        self.changes: dict[str, asyncio.Event] = {}
+        self.loop: asyncio.AbstractEventLoop | None = None
 
     # -- life cycle ---------------------------------------------------------------------------
     async def start(self) -> None:
+        self.loop = asyncio.get_running_loop()
         self.root.mkdir(parents=True, exist_ok=True)
         self.clean_orphans()
         self.dask = await start_cluster(self.settings, log_dir=Path(self.settings.data_dir) / "slurm-logs")
@@ -176,6 +183,38 @@ class JobManager:
             return self.record(job_id)
         except (NotFoundError, StoreError):
             return None
+
+    # -- waiting for a change (long polling: GET /jobs/{id}?wait=S) --------------------------------
+    def changed(self, job_id: str) -> None:
+        """The job's record changed (saved by its run, a start or a cancel): wake the status
+        requests waiting for it. From any thread."""
+        try:
+            here = asyncio.get_running_loop()
+        except RuntimeError:
+            here = None
+        if self.loop is not None and here is not self.loop:
+            self.loop.call_soon_threadsafe(self._wake, job_id)
+        else:
+            self._wake(job_id)
+
+    def _wake(self, job_id: str) -> None:
+        ev = self.changes.pop(job_id, None)
+        if ev is not None:
+            ev.set()
+
+    async def wait_change(self, job_id: str, user: User, timeout: float) -> None:
+        """Wait at most ``timeout`` seconds for the next change of a queued or running job's
+        record (return at once for a job in any other state: nothing changes it by itself).
+        The event is taken before the record is read, so a change made meanwhile is not missed."""
+        self.access(job_id, user)  # the id checked and the job the user's before anything is kept
+        ev = self.changes.setdefault(job_id, asyncio.Event())
+        if not self.record(job_id).state.active:
+            return
+        try:
+            async with asyncio.timeout(min(timeout, MAX_STATUS_WAIT)):
+                await ev.wait()
+        except TimeoutError:
+            pass
 
     # -- limits (service.http.quotas), here so that callers need only the manager ------------------
     def open_jobs(self, user: User) -> int:
@@ -358,6 +397,7 @@ class JobManager:
             save_record(self.job_dir(job_id), rec)
             self.index.reopen(rec)
             self._launch(job_id)
+            self.changed(job_id)
             return rec
 
     def _launch(self, job_id: str) -> None:
@@ -375,6 +415,7 @@ class JobManager:
                     user=owner,
                     tile_time_limit=self.settings.tile_time_limit or None,
                     finish=finish,  # previews and depth, as `maxfs run` makes them
+                    on_progress=lambda rec: self.changed(job_id),  # wakes waiting status requests
                 )
             except asyncio.CancelledError:
                 raise
@@ -391,6 +432,7 @@ class JobManager:
                     self._fail(job_id, f"internal error: {type(e).__name__}: {e}")
             finally:
                 self.runs.pop(job_id, None)
+                self.changed(job_id)
 
         task = asyncio.create_task(go(), name=f"maxfs-job-{job_id}")
         self.runs[job_id] = task
@@ -430,6 +472,7 @@ class JobManager:
                 save_record(self.job_dir(job_id), rec)
             elif rec.state is not JobState.CANCELLED:  # it finished (or failed) just before
                 raise ConflictError(f"job {job_id} is already {rec.state.value}")
+            self.changed(job_id)
             return rec
 
     async def delete(self, job_id: str, user: User) -> JobRecord:
@@ -452,6 +495,7 @@ class JobManager:
         trash = self.root / f"{TEMP_PREFIX}deleting-{job_id}"
         self.job_dir(job_id).rename(trash)  # tile tasks still finishing see their folder gone
         self.index.remove(job_id)
+        self._wake(job_id)
         self.specs.pop(job_id, None)
         self.writable.pop(job_id, None)
         return trash

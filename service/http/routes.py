@@ -18,7 +18,7 @@ from fastapi.responses import JSONResponse, Response, StreamingResponse
 from maxfs.service.http import openapi as api
 from maxfs.service.http.auth import make_auth, user_of
 from maxfs.service.http.guards import HeldStream
-from maxfs.service.http.jobs import TEMP_PREFIX, JobManager
+from maxfs.service.http.jobs import MAX_STATUS_WAIT, TEMP_PREFIX, JobManager
 from maxfs.service.http.models import PARTIAL_HEADER, CreateJob, solve_options, status_body
 from maxfs.service.http.streams import job_still_there, npy_pieces, npy_size, preview_png, zip_pieces
 from maxfs.service.http.uploads import Uploads
@@ -197,8 +197,27 @@ class JobRoutes:
         body = [status_body(r, base) for r in self.m.list_jobs(user, everyone=not mine)]
         return JSONResponse(body, headers={USER_HEADER: signed_in_as(user, self.s.auth)})
 
-    async def status(self, job_id: str, request: Request) -> dict[str, Any]:
-        """State, progress (tiles, pixels/s, ETA, certified share) and error reason of a job."""
+    async def status(
+        self,
+        job_id: str,
+        request: Request,
+        wait: Annotated[
+            float,
+            Query(
+                ge=0,
+                le=MAX_STATUS_WAIT,
+                description="seconds to wait, for a queued or running job, until its status changes "
+                "(progress, state) before answering; 0: answer at once",
+            ),
+        ] = 0,
+    ) -> dict[str, Any]:
+        """State, progress (tiles, pixels/s, ETA, certified share) and error reason of a job.
+
+        With ``wait``, a queued or running job's status comes when it next changes (or after
+        ``wait`` seconds): a client waiting for the end sees it the moment it comes, without
+        polling often."""
+        if wait > 0:
+            await self.m.wait_change(job_id, user_of(request), wait)
         return self._body(request, job_id)
 
     async def upload_image(
