@@ -94,6 +94,22 @@ def _kth_smallest(a, b, m, kth):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True, inline="always")
+def _keep_closest(sel, r, buf, tmp, nfin, nnan, half, keep):  # pragma: no cover - compiled
+    """``keep = sel & (r <= kth)``, ``kth`` the ``half``-th smallest of the row as numpy's sort
+    sees it: the ``nfin`` finite residuals in ``buf``, then inf (unselected observations or
+    infinite residuals), then the ``nnan`` NaN."""
+    k = r.shape[0]
+    if half - 1 < nfin:
+        kth = _kth_smallest(buf, tmp, nfin, half - 1)
+    elif half - 1 < k - nnan:
+        kth = np.inf
+    else:
+        kth = np.nan
+    for i in range(k):
+        keep[i] = sel[i] and r[i] <= kth
+
+
+@njit(cache=True, nogil=True, inline="always")
 def _lts_row(I, sel, L, rounds, keep, r, buf, tmp, n):  # pragma: no cover - compiled
     """One pixel's LTS ``n`` (into ``n``; NaN when undetermined), with scratch ``keep``, ``r``,
     ``buf`` and ``tmp`` of the row's length; True when ``n`` is determined."""
@@ -120,16 +136,7 @@ def _lts_row(I, sel, L, rounds, keep, r, buf, tmp, n):  # pragma: no cover - com
                 elif v < np.inf:
                     buf[nfin] = v
                     nfin += 1
-        # the row as numpy sees it: these finite values, then inf (unselected observations or
-        # infinite residuals), then NaN
-        if half - 1 < nfin:
-            kth = _kth_smallest(buf, tmp, nfin, half - 1)
-        elif half - 1 < k - nnan:
-            kth = np.inf
-        else:
-            kth = np.nan
-        for i in range(k):
-            keep[i] = sel[i] and r[i] <= kth
+        _keep_closest(sel, r, buf, tmp, nfin, nnan, half, keep)
         ok = _refit_one(I, keep, L, n)
     return ok
 
@@ -216,14 +223,7 @@ def lts_keep(I, P, sel, half, keep):  # pragma: no cover - compiled
                 elif v < np.inf:
                     buf[nfin] = v
                     nfin += 1
-        if h - 1 < nfin:
-            kth = _kth_smallest(buf, tmp, nfin, h - 1)
-        elif h - 1 < k - nnan:
-            kth = np.inf
-        else:
-            kth = np.nan
-        for i in range(k):
-            keep[p, i] = sel[p, i] and r[i] <= kth
+        _keep_closest(sel[p], r, buf, tmp, nfin, nnan, h, keep[p])
 
 
 def warm_up() -> None:
