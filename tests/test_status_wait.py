@@ -180,3 +180,5 @@ def test_a_real_server_answers_a_waiting_status_with_the_change(
         st = c.wait(job, on_status=lambda s: states.append(s["state"]))
         assert st["state"] == "done" and states[-1] == "done"
         assert c.status(job, wait=30)["state"] == "done"  # a finished job: at once
+        # the typed forms, whose models the client imports only where it uses them
+        assert c.job(job).state == "done" and [j.id for j in c.job_list()] == [job]

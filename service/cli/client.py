@@ -172,6 +172,8 @@ class MaxfsClient:
     def job(self, job_id: str) -> JobStatus:
         """The job's status checked against, and typed as, the model the server documents
         (:meth:`status` gives the body as a dict)."""
+        from maxfs.service.http.models import JobStatus
+
         return JobStatus.model_validate(self.status(job_id))
 
     def jobs(self, mine: bool = False) -> list[dict[str, Any]]:
