@@ -3,8 +3,9 @@ embedded default when the stack fits in memory.
 
 The exact kernel releases the GIL, so threads use every core without starting a
 cluster or warming worker processes, and the images need not go through Zarr before
-the first tile: they stay in memory, and the store records only their digests (the
-input identity); a resumed run reads the folder again. Every tile goes through
+the first tile: they stay in memory (over the mask's box, :class:`storage.stack.HeldStack`),
+and the store records only their digests (the input identity); a resumed run reads the
+folder again. Every tile goes through
 :func:`worker.task.compute_tile`, the function the Dask tasks run, and the run's states,
 eps, counts and tile order are :class:`service.runs.lifecycle.JobRun`'s, as on Dask, so
 results are bit-identical to the distributed path.
@@ -31,25 +32,23 @@ def run_in_process(
     job_dir: Path,
     *,
     threads: int,
-    images: NDArray | None = None,
+    read_images: Callable[[Tile], NDArray] | None = None,
     on_progress: ProgressFn | None = None,
     progress_interval: float = 1.0,
     timings: Callable[[str, float], None] | None = None,
 ) -> JobRecord:
     """Run (or resume) every unfinished tile of the job at ``job_dir`` on ``threads`` threads.
 
-    ``images``: the whole stack ``(k, H, W[, C])`` in memory, read instead of the store
-    (which then holds only the images' digests). Ends ``done``, ``failed`` (with a reason) or
+    ``read_images``: a tile's images ``(k, h, w[, C])`` from memory (e.g.
+    :meth:`storage.stack.HeldStack.tile`), read instead of the store (which then holds only
+    the images' digests). Ends ``done``, ``failed`` (with a reason) or
     ``cancelled`` like :func:`service.runs.orchestrator.run_job`; a KeyboardInterrupt leaves the
     job resumable.
     """
     run = JobRun(job_dir, on_progress, progress_interval)
     note = timings or (lambda name, s: None)
 
-    def read(t: Tile) -> NDArray:
-        return images[:, t.y0 : t.y1, t.x0 : t.x1]
-
-    reader = None if images is None else read
+    reader = read_images
     run.queue()
     try:
         if run.needs_eps:

@@ -31,7 +31,7 @@ from maxfs.storage.imageio import encode_png
 from maxfs.storage.layout import GROUP_DIR, JobSpec, JobStore, array_digest, is_job_folder, lights_digest
 from maxfs.storage.params import JobParams
 from maxfs.storage.records import JobRecord, JobState, load_record, save_record
-from maxfs.storage.stack import StackReader
+from maxfs.storage.stack import HeldStack, StackReader
 from maxfs.storage.tiles import Tile
 
 log = logging.getLogger("maxfs.local")
@@ -595,33 +595,35 @@ def run_folder(
             from maxfs.service.runs.inprocess import run_in_process
             from maxfs.worker.task import load_kernels
 
-        images = None
+        held = None
         if not store.uploaded().all():  # the stack stays in memory; only its digests are stored
             with tm.phase("read images"):
-                images = read_stack(ds, store, workers, prefetch)
+                held = read_stack(ds, store, workers, prefetch)
         if store.params.solver == "exact":
             with tm.phase("load the solver"):  # its own row: 0.7 s from the cache, or a compile
                 try:
                     load_kernels(on_compile=(lambda: on_note(COMPILING)) if on_note else None)
                 except Exception:  # the first tile raises it again, and the job fails with it
                     pass
-        rec = run_in_process(out, threads=workers, images=images, on_progress=on_progress, timings=tm.add)
+        reader = None if held is None else held.tile
+        rec = run_in_process(
+            out, threads=workers, read_images=reader, on_progress=on_progress, timings=tm.add
+        )
         if rec.state is JobState.DONE:
-            stack = images
-            reader = None if stack is None else (lambda t: stack[:, t.y0 : t.y1, t.x0 : t.x1])
             rec.calibration = [*(f"input folder: {n}" for n in ds.notes), *finish(out, tm, reader)]
             save_record(out, rec)
         return store, rec
 
 
-def read_stack(ds: Dataset, store: JobStore, threads: int, reader: StackReader | None = None) -> NDArray:
-    """The whole stack in memory, decoded on ``threads`` threads (PNG/TIFF decoders release the
-    GIL), or taken from ``reader`` (started earlier, :class:`storage.stack.StackReader`); each
-    image's digest is recorded in the store where it is not yet known, in one write."""
-    images, digests = (reader or StackReader(ds, threads)).result()
+def read_stack(ds: Dataset, store: JobStore, threads: int, reader: StackReader | None = None) -> HeldStack:
+    """The stack in memory over the mask's box (:class:`storage.stack.HeldStack`), decoded on
+    ``threads`` threads (PNG/TIFF decoders release the GIL), or taken from ``reader`` (started
+    earlier, :class:`storage.stack.StackReader`); each image's digest is recorded in the store
+    where it is not yet known, in one write."""
+    held, digests = (reader or StackReader(ds, threads)).result()
     known = store.known_images()
     store.record_digests({i: d for i, d in enumerate(digests) if not known[i]})
-    return images
+    return held
 
 
 def preview_inputs(store: JobStore) -> dict[str, NDArray]:
