@@ -26,7 +26,9 @@ best of ``--reps`` runs; ``count == MILP`` compares the count on a sample of pix
 (HiGHS, ``--milp-cap`` seconds each). ``--baseline FILE`` (an earlier ``worker/exact.py``,
 e.g. ``git show main:worker/exact.py > /tmp/exact_main.py``) times that kernel on the same
 pixels, its runs interleaved with the current one's, and adds its ms/px (best and median), nodes,
-the speed-up and whether every count is the same.
+the speed-up and whether every count is the same. ``--oracle`` adds the nodes the current kernel
+needs when every pixel's first incumbent is already optimal (its own solution as the ``above``
+seed, solved again in a second copy of the batch): what better seeds could save at most.
 
 Run: ``python -m bench.solvers`` (``--quick`` for a smaller run).
 """
@@ -197,8 +199,27 @@ def load_baseline(path: Path) -> Callable:
     return importlib.import_module(path.stem).exact_pixels
 
 
+def oracle_nodes(px: Pixels, lo: np.ndarray, hi: np.ndarray, point: np.ndarray) -> np.ndarray:
+    """Nodes per pixel when each pixel's first incumbent is optimal: the batch solved again
+    behind a copy of itself, each pixel seeded (``above``) by its copy's solution."""
+    P = len(px.I)
+
+    def twice(x: np.ndarray) -> np.ndarray:
+        return np.concatenate([x, x])
+
+    above = np.concatenate([np.full(P, -1), np.arange(P)])
+    res = exact_pixels(twice(px.I), twice(lo), twice(hi), twice(px.V), px.L, px.box_factor, 10**8, above)
+    assert np.array_equal(res[0][:P], point, equal_nan=True)  # the first copy is the batch as timed
+    return res[3][P:]
+
+
 def kernel_row(
-    px: Pixels, reps: int, milp_sample: int, milp_cap: float, baseline: Callable | None = None
+    px: Pixels,
+    reps: int,
+    milp_sample: int,
+    milp_cap: float,
+    baseline: Callable | None = None,
+    oracle: bool = False,
 ) -> dict:
     """The exact kernel on a batch of pixels (best of ``reps``), its nodes, and a MILP check;
     with ``baseline`` (another ``exact_pixels``) that one too, run for run interleaved."""
@@ -239,6 +260,9 @@ def kernel_row(
         "cert": bool(res[4].all()),
         "milp": milp,
     }
+    if oracle:
+        on = oracle_nodes(px, lo, hi, res[0])
+        row |= {"oracle_nodes": float(on.mean()), "oracle_p99": float(np.percentile(on, 99))}
     if baseline:
         b = out["base"]
         row |= {
@@ -274,13 +298,20 @@ def print_kernel_table(rows: list[dict], title: str) -> None:
             )
         else:
             print(head + f"| {r['ms']:.4f} | {r['nodes']:.0f} | {r['p99']:.0f} | {r['milp']}{cert} |")
+    if rows and "oracle_nodes" in rows[0]:
+        print("\nwith an optimal first incumbent (--oracle): nodes/px, p99 nodes\n")
+        for r in rows:
+            print(
+                f"- {r['scene']}: {r['nodes']:.1f} -> {r['oracle_nodes']:.1f}, "
+                f"p99 {r['p99']:.0f} -> {r['oracle_p99']:.0f}"
+            )
 
 
 def kernel_tables(args: argparse.Namespace) -> None:
     baseline = load_baseline(args.baseline) if args.baseline else None
 
     def run(px: Pixels) -> dict:
-        return kernel_row(px, args.reps, args.milp_sample, args.milp_cap, baseline)
+        return kernel_row(px, args.reps, args.milp_sample, args.milp_cap, baseline, args.oracle)
 
     rows = [run(realistic_pixels(k, args.real_size)) for k in args.real_ks]
     print_kernel_table(rows, "exact kernel, realistic scene (16-bit, auto eps)")
@@ -332,6 +363,11 @@ def main() -> None:
         help="kernel: the DiLiGenT crops' slabs (robust: as maxfs run's defaults give them)",
     )
     ap.add_argument("--baseline", type=Path, help="kernel: an earlier worker/exact.py to time alongside")
+    ap.add_argument(
+        "--oracle",
+        action="store_true",
+        help="kernel: also the nodes with each pixel's optimum as its first incumbent",
+    )
     ap.add_argument("--quick", action="store_true", help="smaller runs of every table")
     args = ap.parse_args()
     if args.quick:
