@@ -118,7 +118,14 @@ def test_a_batch_cut_short_keeps_the_whole_images_before_the_cut(server: Server,
             ).encode()
             + body[: NBYTES + NBYTES // 2]  # image 1, and half of image 2
         )
-        poll_until(lambda: _staged(server, job), 30, "image 2 to be staged")
+        # image 1 is stored while image 2's first half waits in the server's memory (small images
+        # of a batch are gathered there, not in a staging file)
+        poll_until(
+            lambda: JobStore.open(server.data / "jobs" / job, mode="r").uploaded()[1],
+            30,
+            "image 1 to be stored",
+        )
+        assert not _staged(server, job)
     # the client hung up: image 1 stays (and is recorded), image 2's half goes
     poll_until(
         lambda: (
