@@ -203,11 +203,15 @@ def versions(args: argparse.Namespace) -> dict[str, Path]:
 
 
 def server_ratio(args: argparse.Namespace, tmp: Path) -> None:
-    """A warm server's ``submit --wait`` + ``fetch`` against ``maxfs run`` on one folder."""
+    """A warm server's ``submit --wait`` + ``fetch`` against ``maxfs run`` on one folder. With
+    ``--baseline``, both versions' servers run at once and the four cases take turns (before's run
+    and server, after's run and server, again ...), so a shared machine's load falls on all alike."""
     folder = Path(args.folder).resolve()
-    for label, bin_dir in versions(args).items():
-        srv = serve(bin_dir, tmp / f"srv-{label}", args.workers)
-        try:
+    servers: dict[str, Server] = {}
+    cases: dict[str, Callable[[int], float]] = {}
+    try:
+        for label, bin_dir in versions(args).items():
+            srv = servers[label] = serve(bin_dir, tmp / f"srv-{label}", args.workers)
             url = ["--server", srv.url]
 
             def local(r: int, b: Path = bin_dir, lab: str = label) -> float:
@@ -229,14 +233,15 @@ def server_ratio(args: argparse.Namespace, tmp: Path) -> None:
                 subprocess.run([maxfs, "delete", job, *u], capture_output=True, check=True)
                 return wall
 
-            got = interleaved(args.runs, {"maxfs run": local, "server": served})
-        finally:
+            cases[f"{label} run"], cases[f"{label} server"] = local, served
+        got = interleaved(args.runs, cases)
+    finally:
+        for srv in servers.values():
             srv.stop()
-        ratios = [s / r for s, r in zip(got["server"], got["maxfs run"], strict=True)]
-        print(
-            f"| {label} | {spread(got['maxfs run'])} | {spread(got['server'])} | {spread(ratios)} |",
-            flush=True,
-        )
+    for label in servers:
+        run, srv = got[f"{label} run"], got[f"{label} server"]
+        ratios = [s / r for s, r in zip(srv, run, strict=True)]
+        print(f"| {label} | {spread(run)} | {spread(srv)} | {spread(ratios)} |", flush=True)
 
 
 def dask_ratio(args: argparse.Namespace, tmp: Path) -> None:
