@@ -184,3 +184,27 @@ def test_shard_reader_reads_any_window_as_zarr_does(
     y *= z.shards[1] // tile  # the first tile row of the shard
     assert reader.read((slice(i, i + 1), slice(y * tile, y * tile + 1), slice(0, w))) is None
     assert reader.read_many([(slice(None), slice(0, h), slice(0, w))]) is None
+
+
+@pytest.mark.parametrize(
+    ("h", "w", "dtype", "whole"),
+    [(320, 296, "uint8", True), (512, 1024, "uint16", True), (513, 1024, "uint16", False)],
+)
+def test_new_stores_keep_small_images_whole_and_name_their_chunks_flat(
+    tmp_path: Path, h: int, w: int, dtype: str, whole: bool
+) -> None:
+    """An image of at most 1 MiB is one shard (one file per upload), a larger one a shard per band
+    of tile rows (an upload holds one band); either way its files (and its digest's) sit side by
+    side in the array's folder, no folder per image."""
+    store = _store(tmp_path / "s", 3, h, w, None, dtype, 64)
+    images = store._fixed("images")
+    assert images.shards[1] == (-(-h // 64) * 64 if whole else 64)
+    for name in ("images", "input_digests"):
+        assert store._fixed(name).metadata.chunk_key_encoding.separator == "."
+    img = _images(3, (h, w), dtype, seed=5)[2]
+    store.write_image(2, img)
+    folder = tmp_path / "s" / GROUP_DIR / PATHS["images"]
+    names = sorted(p.name for p in folder.iterdir() if p.name != "zarr.json")
+    assert names == (["c.2.0.0"] if whole else [f"c.2.{y}.0" for y in range(-(-h // 64))])
+    assert not any(p.is_dir() for p in (tmp_path / "s" / GROUP_DIR / PATHS["input_digests"]).iterdir())
+    np.testing.assert_array_equal(JobStore.open(tmp_path / "s", mode="r").read_array("images", 2), img)
