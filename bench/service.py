@@ -13,12 +13,14 @@ another checkout's ``REPO/.venv/bin/maxfs`` in turn with this one, for before/af
   ``maxfs run`` on the same folder (``--folder``, default the DiLiGenT cat crop);
 - ``dask``: ``maxfs run`` on its Dask path (``MAXFS_IN_PROCESS_BYTES=0``) against the in-process
   path on a 1-megapixel 16-bit job (:func:`bench.scale.write_stack`, ``--mp-k`` images);
+- ``store``: a folder's images stored as an upload stores them, then the eps estimate read from
+  the store (what a server job does before its tiles), in each version's interpreter;
 - ``upload``: HTTP upload MB/s of raw and of PNG bodies (16-bit 1000 x 1000 images), one
   request per image (and PNG with two requests in flight, as two threads of a client send them:
   the server decodes one while it stores the other), and of raw images several to a request as
   ``maxfs submit`` sends them (``PUT /jobs/{id}/images``; "-" for a version without it).
 
-Run: ``python -m bench.service`` (``--only paths,server,dask,upload``; ``--size``, ``--k``,
+Run: ``python -m bench.service`` (``--only paths,server,store,dask,upload``; ``--size``, ``--k``,
 ``--tile`` change the paths table's job).
 """
 
@@ -203,11 +205,15 @@ def versions(args: argparse.Namespace) -> dict[str, Path]:
 
 
 def server_ratio(args: argparse.Namespace, tmp: Path) -> None:
-    """A warm server's ``submit --wait`` + ``fetch`` against ``maxfs run`` on one folder."""
+    """A warm server's ``submit --wait`` + ``fetch`` against ``maxfs run`` on one folder. With
+    ``--baseline``, both versions' servers run at once and the four cases take turns (before's run
+    and server, after's run and server, again ...), so a shared machine's load falls on all alike."""
     folder = Path(args.folder).resolve()
-    for label, bin_dir in versions(args).items():
-        srv = serve(bin_dir, tmp / f"srv-{label}", args.workers)
-        try:
+    servers: dict[str, Server] = {}
+    cases: dict[str, Callable[[int], float]] = {}
+    try:
+        for label, bin_dir in versions(args).items():
+            srv = servers[label] = serve(bin_dir, tmp / f"srv-{label}", args.workers)
             url = ["--server", srv.url]
 
             def local(r: int, b: Path = bin_dir, lab: str = label) -> float:
@@ -229,14 +235,15 @@ def server_ratio(args: argparse.Namespace, tmp: Path) -> None:
                 subprocess.run([maxfs, "delete", job, *u], capture_output=True, check=True)
                 return wall
 
-            got = interleaved(args.runs, {"maxfs run": local, "server": served})
-        finally:
+            cases[f"{label} run"], cases[f"{label} server"] = local, served
+        got = interleaved(args.runs, cases)
+    finally:
+        for srv in servers.values():
             srv.stop()
-        ratios = [s / r for s, r in zip(got["server"], got["maxfs run"], strict=True)]
-        print(
-            f"| {label} | {spread(got['maxfs run'])} | {spread(got['server'])} | {spread(ratios)} |",
-            flush=True,
-        )
+    for label in servers:
+        run, srv = got[f"{label} run"], got[f"{label} server"]
+        ratios = [s / r for s, r in zip(srv, run, strict=True)]
+        print(f"| {label} | {spread(run)} | {spread(srv)} | {spread(ratios)} |", flush=True)
 
 
 def dask_ratio(args: argparse.Namespace, tmp: Path) -> None:
@@ -338,6 +345,57 @@ def upload_rates(args: argparse.Namespace, tmp: Path) -> None:
         )
 
 
+#: What ``store`` runs in each version's interpreter: the server's side of a job before its tiles,
+#: through the API both versions have. Prints "store-seconds eps-seconds".
+STORE_STEPS = """
+import sys, time
+from pathlib import Path
+from maxfs.storage.inputs import load_folder
+from maxfs.storage.layout import JobSpec, JobStore
+from maxfs.storage.params import JobParams
+from maxfs.worker.task import estimate_eps_of
+ds = load_folder(Path(sys.argv[1]))
+images = [ds.read(i) for i in range(ds.k)]
+store = JobStore.create(Path(sys.argv[2]), JobSpec.of(ds), JobParams.build(tile=int(sys.argv[3])))
+if ds.mask is not None:
+    store.write_mask(ds.mask)
+t0 = time.perf_counter()
+for i, image in enumerate(images):
+    store.write_image(i, image)
+t1 = time.perf_counter()
+estimate_eps_of(store)
+print(t1 - t0, time.perf_counter() - t1)
+"""
+
+
+def store_steps(args: argparse.Namespace, tmp: Path) -> None:
+    """Storing a folder's images as an upload does (:meth:`JobStore.write_image`), then the eps
+    estimate from the store (as its task reads it), in each version's interpreter in turn."""
+    folder = Path(args.folder).resolve()
+    cases: dict[str, Callable[[int], float]] = {}
+    got_eps: dict[str, list[float]] = {}
+    for label, bin_dir in versions(args).items():
+        got_eps[label] = []
+
+        def steps(r: int, b: Path = bin_dir, lab: str = label) -> float:
+            out = tmp / f"store-{lab}-{r}"
+            p = subprocess.run(
+                [str(b / "python"), "-c", STORE_STEPS, str(folder), str(out), str(args.tile)],
+                capture_output=True,
+                text=True,
+                check=True,
+            )
+            shutil.rmtree(out, ignore_errors=True)
+            stored, eps = (float(v) for v in p.stdout.split())
+            got_eps[lab].append(eps)
+            return stored
+
+        cases[label] = steps
+    got = interleaved(args.runs, cases)
+    for label in cases:
+        print(f"| {label} | {spread(got[label])} | {spread(got_eps[label])} |", flush=True)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--only", default="paths,server,dask,upload", help="sections, comma-separated")
@@ -367,6 +425,13 @@ def main() -> None:
             )
             print("| version | maxfs run s | server s | server / run |\n|---|---|---|---|", flush=True)
             server_ratio(args, tmp)
+        if "store" in only:
+            print(
+                f"\nstoring {args.folder}'s images in a job store (tile {args.tile}), then the eps estimate "
+                f"from it; s, min / median / max of {args.runs} interleaved runs\n"
+            )
+            print("| version | store the images s | eps estimate s |\n|---|---|---|", flush=True)
+            store_steps(args, tmp)
         if "dask" in only:
             print(
                 f"\n`maxfs run`, 1000 x 1000 x {args.mp_k} uint16: Dask path (MAXFS_IN_PROCESS_BYTES=0) vs "

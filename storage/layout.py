@@ -19,7 +19,8 @@ edge, chunks are tile-aligned)::
     source        (H, W)          uint8                 how the normal was obtained (worker.solve.Source)
     depth         (H, W)          float32               once integrated after the run
     xyz, image, channel           coordinates: "x" "y" "z"; image numbers 1..k; "r" "g" "b" or "grey"
-    inputs/images (k, H, W[, C])  uint8|uint16|float32  chunks (1, T, T[, C]) in shards (1, T, W'[, C])
+    inputs/images (k, H, W[, C])  uint8|uint16|float32  chunks (1, T, T[, C]) in shards (1, T, W'[, C]),
+                                                        or (1, H', W'[, C]) for images of at most 1 MiB
     inputs/uploaded (k,)          bool                  chunks (1,)   set after images[i]
     inputs/input_digests (k + 1, 32) uint8              chunks (1, 32)    BLAKE2b of image i; row k: mask
     tiles/done    (ny, nx)        int32                 chunks (1, 1)
@@ -31,9 +32,13 @@ the per-tile bookkeeping are in the subgroups ``inputs`` and ``tiles`` (``group=
 ``inputs/images`` holds only the images with ``uploaded[i]`` (a local run that keeps the stack
 in memory stores just their digests).
 
-``W'`` is W rounded up to a multiple of T. A tile task reads k chunks of ``images``
+``W'`` (``H'``) is W (H) rounded up to a multiple of T. A tile task reads k chunks of ``images``
 (one per image, through each shard's index); an upload writes one band of T rows
-at a time, which is one whole shard, so the server never holds more than a band.
+at a time, which is one whole shard, so the server never holds more than a band (or a
+whole image of at most 1 MiB: one shard, one file). The per-image arrays ``images`` and
+``input_digests`` name their chunk files ``c.i.y...`` in the array's folder
+(:data:`FLAT_KEYS`); stores made before keep ``c/i/y/...``, which every reader follows from
+the array's metadata.
 An image is written as ``uploaded[i] = False``, its bands, then ``uploaded[i] =
 True``, so an upload cut short (a killed server) leaves the image marked missing.
 
@@ -57,16 +62,15 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import hashlib
-import json
 import os
 import threading
 import time
 from collections import deque
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from concurrent.futures import Future
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 import zarr
@@ -77,20 +81,18 @@ from zarr.core.sync import sync
 from maxfs.storage.digests import DIGEST_BYTES, ArrayHasher, array_digest
 from maxfs.storage.errors import ConflictError, InvalidInputError, NotFoundError, StoreError
 from maxfs.storage.observations import ObservationModel
-from maxfs.storage.options import DTYPES, check_lights
 from maxfs.storage.outputs import (
     OUTPUT_NAMES,
     OUTPUT_TABLE,
     OUTPUTS_BY_NAME,
     TILE_OUTPUTS,
-    output_bytes_per_pixel,
 )
 from maxfs.storage.params import JobParams
 from maxfs.storage.shards import ChunkWriter, ShardReader, ShardWriter
-from maxfs.storage.tiles import Tile, auto_tile, grid_shape, masked_per_tile, tile_memory, tiles
 
-if TYPE_CHECKING:
-    from maxfs.storage.datasets import Dataset
+# the spec and the store's place, kept in a module without zarr (see there), named here too
+from maxfs.storage.spec import GROUP_DIR, JobSpec, is_job_folder, job_folder  # noqa: F401
+from maxfs.storage.tiles import Tile, grid_shape, masked_per_tile, tiles
 
 
 def lights_digest(spec: JobSpec) -> str:
@@ -111,8 +113,12 @@ class ProgressCounts:
 
 
 FORMAT_VERSION = 4
-#: The Zarr group's folder inside a job folder.
-GROUP_DIR = "results.zarr"
+#: Chunk keys of the per-image input arrays: files ``c.i.y.x...`` side by side in the array's
+#: folder, not a folder per image and band (``c/i/y/...``); creating a folder costs as much as
+#: writing the file, 0.3-2 ms each on the reference machine's ext4, about ten per image.
+FLAT_KEYS = {"name": "default", "separator": "."}
+#: Images of at most this many bytes are stored as one shard each (see :meth:`JobStore.create`).
+WHOLE_IMAGE_SHARD_BYTES = 1 << 20
 #: Where the arrays that are not results live in the group: subgroups, so that ``xarray.open_zarr``
 #: of the root shows the results alone (it reads no subgroup).
 PATHS: dict[str, str] = {
@@ -156,129 +162,6 @@ DESCRIPTIONS: dict[str, dict[str, str]] = {
     "input_digests": {"long_name": "BLAKE2b-256 of image i; last row: the mask"},
     **{o.name: o.attrs() for o in OUTPUT_TABLE},
 }
-
-
-@dataclass(frozen=True)
-class JobSpec:
-    """Shape and metadata of a job's inputs."""
-
-    k: int
-    height: int
-    width: int
-    channels: int | None  # None = grey
-    dtype: str
-    lights: NDArray[np.float64]
-    intensities: NDArray[np.float64] | None = None
-
-    @classmethod
-    def of(cls, ds: Dataset) -> JobSpec:
-        """The validated spec of an opened dataset's stack."""
-        return cls(ds.k, ds.height, ds.width, ds.channels, ds.dtype, ds.lights, ds.intensities).validate()
-
-    def validate(self) -> JobSpec:
-        if self.k < 3:
-            raise InvalidInputError(f"photometric stereo needs at least 3 images, got k={self.k}")
-        if self.height < 1 or self.width < 1:
-            raise InvalidInputError(
-                f"image height and width must be positive, got height={self.height}, width={self.width}"
-            )
-        if self.channels not in (None, 3):
-            raise InvalidInputError(f"channels must be 1 (grey) or 3 (RGB), got {self.channels}")
-        if self.dtype not in DTYPES:
-            raise InvalidInputError(f"dtype must be one of {', '.join(DTYPES)}, got {self.dtype!r}")
-        lights = check_lights(self.lights, self.k)
-        inten = self.intensities
-        if inten is not None:
-            try:
-                inten = np.asarray(inten, dtype=np.float64)
-            except (ValueError, TypeError):
-                raise InvalidInputError(
-                    f"light intensities must be {self.k} numbers, or {self.k} rows of one number per "
-                    "channel, all rows the same length"
-                ) from None
-        obs = ObservationModel.for_input(np.dtype(self.dtype), self.k, self.channels, inten)
-        return JobSpec(self.k, self.height, self.width, self.channels, self.dtype, lights, obs.intensities)
-
-    @property
-    def image_shape(self) -> tuple[int, ...]:
-        hw = (self.height, self.width)
-        return hw if self.channels is None else (*hw, self.channels)
-
-    @property
-    def image_nbytes(self) -> int:
-        return int(np.prod(self.image_shape)) * np.dtype(self.dtype).itemsize
-
-    @property
-    def itemsize(self) -> int:
-        return np.dtype(self.dtype).itemsize
-
-    @property
-    def pixels(self) -> int:
-        return self.height * self.width
-
-    def check_params(self, params: JobParams) -> None:
-        """Refuse thresholds that no value of these images can reach: for integer input, an
-        eps or shadow threshold above the brightest grey value the dtype can hold (after the
-        light intensities) makes every observation fit or every one a shadow, and the result
-        meaningless. Float input has no such bound."""
-        dt = np.dtype(self.dtype)
-        if not np.issubdtype(dt, np.integer) or self.intensities is None:
-            return
-        top = float(np.iinfo(dt).max) / float(np.min(self.intensities)) + 1.0
-        asked = None if params.eps_request == "auto" else float(params.eps_request)
-        for name, v in (("eps", params.eps if params.eps is not None else asked), ("shadow", params.shadow)):
-            if v is not None and v > top:
-                raise InvalidInputError(
-                    f"{name} = {v:g} is above the brightest value {self.dtype} images can hold here "
-                    f"({top:g}, after the light intensities): every observation would "
-                    f"{'fit' if name == 'eps' else 'be a shadow'}; give a value in the data's range, or "
-                    f"{'eps=auto' if name == 'eps' else 'leave it unset'}"
-                )
-
-    def store_nbytes(self) -> int:
-        """Upper bound of the job's size on disk (images and outputs, uncompressed)."""
-        return self.k * self.image_nbytes + self.pixels * output_bytes_per_pixel(self.k, self.channels)
-
-    def auto_tile(self, memory: int, solver: str = "exact", mask: NDArray[np.bool_] | None = None) -> int:
-        """Tile edge for this stack, a per-task memory budget, a solver and, where it is known
-        when the job is made, the mask (see :func:`storage.tiles.auto_tile`)."""
-        return auto_tile(self.k, self.channels, self.itemsize, memory, self.pixels, solver, mask)
-
-    def resolve_tile(
-        self, tile: int | str, memory: int, solver: str = "exact", mask: NDArray[np.bool_] | None = None
-    ) -> int:
-        """``"auto"`` to :meth:`auto_tile`; a tile edge given by hand must fit ``memory``."""
-        if tile == "auto":
-            return self.auto_tile(memory, solver, mask)
-        self.check_tile(int(tile), memory)
-        return int(tile)
-
-    def check_tile(self, tile: int, memory: int) -> None:
-        """Refuse a tile edge whose task would need more than ``memory`` bytes."""
-        need = tile_memory(tile, self.k, self.channels, self.itemsize)
-        if need > memory:
-            raise InvalidInputError(
-                f"tile {tile} needs about {need / 2**20:.0f} MiB per task with k={self.k}, more than the "
-                f"{memory / 2**20:.0f} MiB task budget; use tile {self.auto_tile(memory)} or 'auto'"
-            )
-
-
-def job_folder(path: Path) -> Path:
-    """The job folder of ``path``, which may name the folder or its ``results.zarr``."""
-    path = Path(path)
-    return path.parent if path.name == GROUP_DIR and (path / "zarr.json").exists() else path
-
-
-def is_job_folder(path: Path) -> bool:
-    """Whether ``path`` holds a maxfs job store, of this or an older format."""
-    for meta in (Path(path) / GROUP_DIR / "zarr.json", Path(path) / "zarr.json"):
-        try:
-            attrs = json.loads(meta.read_text()).get("attributes", {})
-        except (OSError, ValueError, AttributeError):
-            continue
-        if isinstance(attrs, dict) and "maxfs_format" in attrs:
-            return True
-    return False
 
 
 class JobStore:
@@ -336,7 +219,11 @@ class JobStore:
         k, H, W, C = spec.k, spec.height, spec.width, spec.channels
         cc = () if C is None else (C,)
         img_chunks = (1, min(T, H), min(T, W), *cc)
-        img_shards = (1, min(T, H), -(-W // min(T, W)) * min(T, W), *cc)
+        # a small image is one shard (one file, written in one piece); a larger one a shard per
+        # band of T rows, so that an upload holds one band of it at a time
+        whole = spec.image_nbytes <= WHOLE_IMAGE_SHARD_BYTES
+        rows = -(-H // min(T, H)) * min(T, H) if whole else min(T, H)
+        img_shards = (1, rows, -(-W // min(T, W)) * min(T, W), *cc)
         try:
             g = zarr.open_group(path / GROUP_DIR, mode="w-", zarr_format=3)
         except (zarr.errors.ContainsGroupError, zarr.errors.ContainsArrayError, FileExistsError):
@@ -355,6 +242,7 @@ class JobStore:
             compressors=ZstdCodec(level=1),
             dtype=spec.dtype,
             fill_value=0,
+            chunk_key_encoding=FLAT_KEYS,
             dimension_names=DIMS["images"] + (("channel",) if C is not None else ()),
             attributes=DESCRIPTIONS["images"],
         )
@@ -417,6 +305,7 @@ class JobStore:
             chunks=(1, DIGEST_BYTES),
             dtype="uint8",
             fill_value=0,
+            chunk_key_encoding=FLAT_KEYS,
             dimension_names=DIMS["input_digests"],
             attributes=DESCRIPTIONS["input_digests"],
         )
@@ -675,15 +564,38 @@ class JobStore:
         """Raw images ``(k, h, w[, C])`` and mask ``(h, w)`` of one tile."""
         return self.read_tile_images(t), self.read_tile_mask(t)
 
-    def read_tile_images(self, t: Tile) -> NDArray[Any]:
-        """The raw images of window ``t`` ``(k, h, w[, C])``: from the shard files directly
-        (:class:`storage.shards.ShardReader`), or through zarr for other codecs."""
+    def _shard_reader(self) -> ShardReader | None:
         if self._reader is None:
             folder = self.path / GROUP_DIR / PATHS["images"]
             self._reader = (ShardReader.for_array(folder, self._fixed("images")),)
+        return self._reader[0]
+
+    def read_tile_images(self, t: Tile) -> NDArray[Any]:
+        """The raw images of window ``t`` ``(k, h, w[, C])``: from the shard files directly
+        (:class:`storage.shards.ShardReader`), or through zarr for other codecs."""
         region = (slice(None), slice(t.y0, t.y1), slice(t.x0, t.x1))
-        got = None if self._reader[0] is None else self._reader[0].read(region)
+        reader = self._shard_reader()
+        got = None if reader is None else reader.read(region)
         return np.asarray(self._fixed("images")[region]) if got is None else got
+
+    def window_reader(self, windows: Iterable[Tile]) -> Callable[[Tile], NDArray[Any]]:
+        """:meth:`read_tile_images` for many windows (the eps sample's), all read now with every
+        shard file opened once (:meth:`ShardReader.read_many`; one open per window and image cost
+        more than the reading); any other window is read from the store when asked for."""
+        wins = {(t.y0, t.y1, t.x0, t.x1) for t in windows}
+        reader = self._shard_reader()
+        got = None
+        if reader is not None and wins:
+            order = sorted(wins)
+            many = reader.read_many([(slice(None), slice(y0, y1), slice(x0, x1)) for y0, y1, x0, x1 in order])
+            got = None if many is None else dict(zip(order, many, strict=True))
+        kept = got or {}
+
+        def read(t: Tile) -> NDArray[Any]:
+            block = kept.get((t.y0, t.y1, t.x0, t.x1))
+            return self.read_tile_images(t) if block is None else block.copy()
+
+        return read
 
     def read_tile_mask(self, t: Tile) -> NDArray[np.bool_]:
         return np.asarray(self._fixed("mask")[t.y0 : t.y1, t.x0 : t.x1])

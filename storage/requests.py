@@ -16,9 +16,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from maxfs.storage.errors import InvalidInputError
-from maxfs.storage.layout import JobSpec
 from maxfs.storage.options import SOLVE_OPTIONS
 from maxfs.storage.params import JobParams
+from maxfs.storage.spec import JobSpec
 from maxfs.storage.tiles import WORK_COST, WORK_PER_TILE
 
 #: Option names a request may give.

@@ -254,40 +254,80 @@ class ShardReader:
         """The values of ``region`` (a slice per dimension, steps of 1) as zarr reads them, or
         None where zarr should read them instead (a shard whose index is damaged or cut short).
         Dimensions left out are read whole."""
+        got = self.read_many([region])
+        return None if got is None else got[0]
+
+    def read_many(self, regions: list[tuple[slice, ...]]) -> list[NDArray[Any]] | None:
+        """:meth:`read` of several regions, each shard file opened and each inner chunk decoded
+        once for all of them (the eps sample's windows: a few dozen in every image's shard); None
+        where zarr should read them instead."""
+        files: dict[tuple[int, ...], tuple[int, NDArray[np.uint64]] | bool | None] = {}
+        decoded: dict[tuple[int, ...], NDArray[Any] | None] = {}
+        try:
+            out = []
+            for region in regions:
+                got = self._read(region, files, decoded)
+                if got is None:
+                    return None
+                out.append(got)
+            return out
+        finally:
+            for opened in files.values():
+                if isinstance(opened, tuple):
+                    os.close(opened[0])
+
+    def _read(
+        self,
+        region: tuple[slice, ...],
+        files: dict[tuple[int, ...], tuple[int, NDArray[np.uint64]] | bool | None],
+        decoded: dict[tuple[int, ...], NDArray[Any] | None],
+    ) -> NDArray[Any] | None:
+        """One region of :meth:`read_many`: ``files`` holds the shard files opened so far (None: no
+        file), ``decoded`` the inner chunks decoded so far (None: fill value only)."""
         region = (*region, *(slice(None),) * (len(self.shape) - len(region)))
         bounds = [r.indices(n)[:2] for r, n in zip(region, self.shape, strict=True)]
         out = np.empty([max(0, b - a) for a, b in bounds], dtype=self.dtype)
         if out.size == 0:
             return out
         spans = [range(a // c, (b - 1) // c + 1) for (a, b), c in zip(bounds, self.chunk, strict=True)]
-        by_shard: dict[tuple[int, ...], list[tuple[int, ...]]] = {}
         for cc in itertools.product(*spans):
-            by_shard.setdefault(tuple(c // p for c, p in zip(cc, self.per_shard, strict=True)), []).append(cc)
-        for sc, chunks in by_shard.items():
-            try:
-                f = os.open(self.folder / self.keys.encode_chunk_key(sc), os.O_RDONLY)
-            except FileNotFoundError:  # no shard file: every chunk holds the fill value
-                for cc in chunks:
-                    out[self._overlap(cc, bounds)[1]] = self.fill
-                continue
-            try:
-                index = self._index(f, os.fstat(f).st_size)
-                if index is None:
-                    return None
-                for cc in chunks:
-                    src, dst = self._overlap(cc, bounds)
+            src, dst = self._overlap(cc, bounds)
+            if cc not in decoded:
+                sc = tuple(c // p for c, p in zip(cc, self.per_shard, strict=True))
+                if sc not in files:
+                    files[sc] = self._open(sc)
+                    if files[sc] is False:
+                        return None
+                opened = files[sc]
+                if not isinstance(opened, tuple):  # no shard file: every chunk holds the fill value
+                    decoded[cc] = None
+                else:
+                    f, index = opened
                     at = tuple(c % p for c, p in zip(cc, self.per_shard, strict=True))
                     offset, length = (int(v) for v in index[at])
                     if offset == EMPTY and length == EMPTY:
-                        out[dst] = self.fill
-                        continue
-                    data = os.pread(f, length, offset)
-                    if len(data) != length:
-                        return None
-                    out[dst] = np.frombuffer(self.zstd.decode(data), self.stored).reshape(self.chunk)[src]
-            finally:
-                os.close(f)
+                        decoded[cc] = None
+                    else:
+                        data = os.pread(f, length, offset)
+                        if len(data) != length:
+                            return None
+                        decoded[cc] = np.frombuffer(self.zstd.decode(data), self.stored).reshape(self.chunk)
+            chunk = decoded[cc]
+            out[dst] = self.fill if chunk is None else chunk[src]
         return out
+
+    def _open(self, sc: tuple[int, ...]) -> tuple[int, NDArray[np.uint64]] | bool | None:
+        """Shard ``sc``'s open file and index; None when there is no file, False when its index
+        does not check out (the file is closed then)."""
+        try:
+            f = os.open(self.folder / self.keys.encode_chunk_key(sc), os.O_RDONLY)
+        except FileNotFoundError:
+            return None
+        index = self._index(f, os.fstat(f).st_size)
+        if index is None:
+            os.close(f)
+            return False
+        return f, index
 
     def _overlap(self, cc: tuple[int, ...], bounds: list[tuple[int, int]]) -> tuple[tuple[slice, ...], ...]:
         """Where inner chunk ``cc`` and the region ``bounds`` meet: (in the chunk, in the region)."""

@@ -11,6 +11,7 @@ import pytest
 import zarr
 from zarr.codecs import BloscCodec, ZstdCodec
 
+from maxfs.storage import layout
 from maxfs.storage.layout import GROUP_DIR, PATHS, JobSpec, JobStore
 from maxfs.storage.params import JobParams
 from maxfs.storage.shards import ShardReader, ShardWriter
@@ -20,6 +21,32 @@ from maxfs.worker import synthetic
 def _store(path: Path, k: int, h: int, w: int, channels: int | None, dtype: str, tile: int) -> JobStore:
     spec = JobSpec(k, h, w, channels, dtype, synthetic.lights_uniform(k))
     return JobStore.create(path, spec, JobParams.build(eps=2.0, tile=tile))
+
+
+#: How stores lay out their image shards: this version's (small images one shard each, chunk keys
+#: ``c.i.y.x`` side by side) and the earlier one (a shard per band of tile rows, keys ``c/i/y/x``),
+#: which stores made before still have.
+LAYOUTS = {"flat-whole": (layout.FLAT_KEYS, layout.WHOLE_IMAGE_SHARD_BYTES), "nested-bands": (None, 0)}
+
+
+@pytest.fixture(params=sorted(LAYOUTS))
+def shard_layout(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> str:
+    keys, whole = LAYOUTS[request.param]
+    monkeypatch.setattr(layout, "FLAT_KEYS", keys)
+    monkeypatch.setattr(layout, "WHOLE_IMAGE_SHARD_BYTES", whole)
+    return request.param
+
+
+def _shard_files(folder: Path) -> list[Path]:
+    """The shard files of an images array's folder, whatever its chunk key separator."""
+    return sorted(
+        p for p in folder.rglob("*") if p.is_file() and p.relative_to(folder).as_posix()[:2] in ("c/", "c.")
+    )
+
+
+def _shard_coords(folder: Path, shard: Path) -> tuple[int, ...]:
+    rel = shard.relative_to(folder).as_posix()
+    return tuple(int(n) for n in rel.replace("/", ".").split(".")[1:])
 
 
 def _images(k: int, shape: tuple[int, ...], dtype: str, seed: int) -> np.ndarray:
@@ -43,7 +70,7 @@ def _images(k: int, shape: tuple[int, ...], dtype: str, seed: int) -> np.ndarray
     ],
 )
 def test_shards_read_back_as_zarr_writes_them(
-    tmp_path: Path, h: int, w: int, channels: int | None, dtype: str, tile: int
+    tmp_path: Path, h: int, w: int, channels: int | None, dtype: str, tile: int, shard_layout: str
 ) -> None:
     k = 4
     shape = (h, w) if channels is None else (h, w, channels)
@@ -62,12 +89,15 @@ def test_shards_read_back_as_zarr_writes_them(
         np.testing.assert_array_equal(again.read_array("images", i), images[i])
     # the files are zarr's: the same set of shards (none where all is fill value), each decoding
     # to the same values as zarr's own, read a tile at a time as tile tasks read them
-    root = Path(GROUP_DIR) / PATHS["images"] / "c"
-    files = sorted(p.relative_to(tmp_path / "fast").as_posix() for p in (tmp_path / "fast" / root).rglob("*"))
-    assert files == sorted(
-        p.relative_to(tmp_path / "slow").as_posix() for p in (tmp_path / "slow" / root).rglob("*")
-    )
-    assert not any((tmp_path / "fast" / root / "0").rglob("*[0-9]")), "an image of zeros stores no shard"
+    root = Path(GROUP_DIR) / PATHS["images"]
+    files = [p.relative_to(tmp_path / "fast").as_posix() for p in _shard_files(tmp_path / "fast" / root)]
+    assert files and files == [
+        p.relative_to(tmp_path / "slow").as_posix() for p in _shard_files(tmp_path / "slow" / root)
+    ]
+    coords = [_shard_coords(tmp_path / "fast" / root, tmp_path / "fast" / f) for f in files]
+    assert not any(c[0] == 0 for c in coords), "an image of zeros stores no shard"
+    whole = shard_layout == "flat-whole"
+    assert {c[1] for c in coords} == ({0} if whole else set(range(-(-h // min(tile, h)))))
     for t in again.tiles():
         np.testing.assert_array_equal(again.read_tile_images(t), images[:, t.y0 : t.y1, t.x0 : t.x1])
 
@@ -103,7 +133,9 @@ def test_arrays_of_other_codecs_get_no_writer_and_are_written_by_zarr(tmp_path: 
 
 
 @pytest.mark.parametrize(("channels", "dtype"), [(None, "uint16"), (3, "uint8"), (None, "float32")])
-def test_shard_reader_reads_any_window_as_zarr_does(tmp_path: Path, channels: int | None, dtype: str) -> None:
+def test_shard_reader_reads_any_window_as_zarr_does(
+    tmp_path: Path, channels: int | None, dtype: str, shard_layout: str
+) -> None:
     """Tile tasks read their images straight from the shard files (ShardReader): the same values
     and dtype as zarr's own reads, for windows on and off the tile grid, over chunks and shards of
     fill value only, in stores written by ShardWriter or by zarr; a damaged shard index is left
@@ -132,12 +164,47 @@ def test_shard_reader_reads_any_window_as_zarr_does(tmp_path: Path, channels: in
             assert got is not None and got.dtype == want.dtype
             np.testing.assert_array_equal(got, want)
         np.testing.assert_array_equal(reader.read((slice(2, 3), slice(5, 60), slice(0, 45))), z[2:3, 5:60])
+        # all windows at once (each shard opened, each chunk decoded once), as the eps sample reads
+        many = reader.read_many([(slice(None), slice(y0, y1), slice(x0, x1)) for y0, y1, x0, x1 in windows])
+        assert many is not None and len(many) == len(windows)
+        for (y0, y1, x0, x1), got in zip(windows, many, strict=True):
+            np.testing.assert_array_equal(got, z[:, y0:y1, x0:x1])
+        tiles = store.tiles()
+        read = store.window_reader(tiles[:3])
+        for t in tiles:  # the windows read up front and any other one alike
+            np.testing.assert_array_equal(read(t), z[:, t.y0 : t.y1, t.x0 : t.x1])
     folder = tmp_path / "fast" / GROUP_DIR / PATHS["images"]
     reader = ShardReader.for_array(folder, JobStore.open(tmp_path / "fast", mode="r")._fixed("images"))
     assert reader is not None
-    shard = next(p for p in (folder / "c").rglob("*") if p.is_file())
+    shard = _shard_files(folder)[0]
     data = bytearray(shard.read_bytes())
     data[-6] ^= 0xFF  # in the index: its checksum no longer matches
     shard.write_bytes(bytes(data))
-    i, y = (int(n) for n in shard.relative_to(folder / "c").parts[:2])
+    i, y = _shard_coords(folder, shard)[:2]
+    y *= z.shards[1] // tile  # the first tile row of the shard
     assert reader.read((slice(i, i + 1), slice(y * tile, y * tile + 1), slice(0, w))) is None
+    assert reader.read_many([(slice(None), slice(0, h), slice(0, w))]) is None
+
+
+@pytest.mark.parametrize(
+    ("h", "w", "dtype", "whole"),
+    [(320, 296, "uint8", True), (512, 1024, "uint16", True), (513, 1024, "uint16", False)],
+)
+def test_new_stores_keep_small_images_whole_and_name_their_chunks_flat(
+    tmp_path: Path, h: int, w: int, dtype: str, whole: bool
+) -> None:
+    """An image of at most 1 MiB is one shard (one file per upload), a larger one a shard per band
+    of tile rows (an upload holds one band); either way its files (and its digest's) sit side by
+    side in the array's folder, no folder per image."""
+    store = _store(tmp_path / "s", 3, h, w, None, dtype, 64)
+    images = store._fixed("images")
+    assert images.shards[1] == (-(-h // 64) * 64 if whole else 64)
+    for name in ("images", "input_digests"):
+        assert store._fixed(name).metadata.chunk_key_encoding.separator == "."
+    img = _images(3, (h, w), dtype, seed=5)[2]
+    store.write_image(2, img)
+    folder = tmp_path / "s" / GROUP_DIR / PATHS["images"]
+    names = sorted(p.name for p in folder.iterdir() if p.name != "zarr.json")
+    assert names == (["c.2.0.0"] if whole else [f"c.2.{y}.0" for y in range(-(-h // 64))])
+    assert not any(p.is_dir() for p in (tmp_path / "s" / GROUP_DIR / PATHS["input_digests"]).iterdir())
+    np.testing.assert_array_equal(JobStore.open(tmp_path / "s", mode="r").read_array("images", 2), img)

@@ -118,7 +118,14 @@ def test_a_batch_cut_short_keeps_the_whole_images_before_the_cut(server: Server,
             ).encode()
             + body[: NBYTES + NBYTES // 2]  # image 1, and half of image 2
         )
-        poll_until(lambda: _staged(server, job), 30, "image 2 to be staged")
+        # image 1 is stored while image 2's first half waits in the server's memory (small images
+        # of a batch are gathered there, not in a staging file)
+        poll_until(
+            lambda: JobStore.open(server.data / "jobs" / job, mode="r").uploaded()[1],
+            30,
+            "image 1 to be stored",
+        )
+        assert not _staged(server, job)
     # the client hung up: image 1 stays (and is recorded), image 2's half goes
     poll_until(
         lambda: (
@@ -132,6 +139,49 @@ def test_a_batch_cut_short_keeps_the_whole_images_before_the_cut(server: Server,
     np.testing.assert_array_equal(store.read_array("images", 1), IMAGES[1])
     # resumed: the rest, as the status lists it
     assert _batch(http, job, 2, 4).json()["missing_images"] == [0]
+
+
+def test_a_batch_of_large_images_is_staged_and_a_cut_keeps_the_whole_ones(
+    server: Server, http: httpx.Client
+) -> None:
+    """Images above :data:`service.http.uploads.IN_MEMORY_IMAGE_BYTES` go through a staging file
+    each, as a single upload's body does: stored as sent, and a body cut short keeps the whole
+    images before the cut and leaves no staging file."""
+    from maxfs.service.http.uploads import IN_MEMORY_IMAGE_BYTES
+
+    k, h, w = 3, 768, 768
+    nbytes = h * w * 2
+    assert nbytes > IN_MEMORY_IMAGE_BYTES
+    big = np.random.default_rng(11).integers(0, 65535, (k, h, w), dtype=np.uint16)
+    meta = {"k": k, "height": h, "width": w, "dtype": "uint16", "eps": 2.0}
+    meta["lights"] = synthetic.lights_uniform(k).tolist()
+    job = http.post("/jobs", json=meta).json()["id"]
+    body = big[:2].astype("<u2").tobytes()
+    with socket.create_connection(("127.0.0.1", server.port), timeout=60) as s:
+        s.sendall(
+            (
+                f"PUT /jobs/{job}/images?first=0&count=2 HTTP/1.1\r\nHost: x\r\n"
+                f"Content-Type: application/octet-stream\r\nContent-Length: {len(body)}\r\n\r\n"
+            ).encode()
+            + body[: nbytes + nbytes // 2]  # image 0, and half of image 1
+        )
+        poll_until(lambda: _staged(server, job), 30, "image 1 to be staged")
+    poll_until(
+        lambda: http.get(f"/jobs/{job}").json()["missing_images"] == [1, 2] and not _staged(server, job),
+        30,
+        "image 0 to be recorded and image 1's staging file removed",
+    )
+    r = http.put(
+        f"/jobs/{job}/images",
+        params={"first": 1, "count": 2},
+        content=big[1:].astype("<u2").tobytes(),
+        headers={"Content-Type": "application/octet-stream"},
+    )
+    assert r.status_code == 200, r.text
+    assert r.json()["missing_images"] == []
+    store = JobStore.open(server.data / "jobs" / job, mode="r")
+    for i in range(k):
+        np.testing.assert_array_equal(store.read_array("images", i), big[i])
 
 
 def test_submit_batches_small_consecutive_images() -> None:

@@ -186,11 +186,14 @@ def estimate_eps_of(store: JobStore, read_images: Callable[[Tile], NDArray] | No
     pixels on every path, whatever the tile size (``read_images`` as for
     :func:`compute_tile`, called with sample windows off the tile grid)."""
     spec, params = store.spec, store.params
+    mask = store.read_mask()
+    if read_images is None:  # the sample's windows read at once, each shard file opened once
+        read_images = store.window_reader(t for t, _, _ in eps_sample((spec.height, spec.width), mask))
     return estimate_job(
-        read_images or store.read_tile_images,
+        read_images,
         spec.lights,
         store.observation_model,
-        store.read_mask(),
+        mask,
         (spec.height, spec.width),
         eps=params.eps_request,
         response=params.response_request,
@@ -286,11 +289,11 @@ def check_calibration(
     a mask, the share of background pixels (``normal`` and ``source``: the outputs, read from the
     store when not given)."""
     spec = store.spec
-    read = read_images or store.read_tile_images
     obs = store.observation_model
     out = [calibration.lights_facing(spec.lights)]
     has_mask = store.mask_state() != "default"
     picks = eps_sample((spec.height, spec.width), store.read_mask() if has_mask else None)
+    read = read_images or store.window_reader(t for t, _, _ in picks)
     if picks:
         raw = np.concatenate([read(t)[:, ys, xs] for t, ys, xs in picks], axis=1)
         grey, _, saturated = obs.prepare(raw)

@@ -66,8 +66,8 @@ def run_tile(ds: Dataset, params: dict[str, Any]) -> int:
     mask arrives after the job, and with it the grid), so ``maxfs submit`` sends this edge:
     the same grid as a local run, and so the same results, ties included."""
     from maxfs.service.settings import Settings
-    from maxfs.storage.layout import JobSpec
     from maxfs.storage.requests import DEFAULTS, resolve_tile
+    from maxfs.storage.spec import JobSpec
 
     spec = JobSpec.of(ds)
     solver = str(params.get("solver") or DEFAULTS["solver"])
@@ -232,7 +232,7 @@ class MaxfsClient:
         An existing ``out`` is replaced only with ``overwrite``, and only if it holds maxfs results
         (or nothing): the old folder goes once the new one is complete.
         """
-        from maxfs.storage.layout import is_job_folder
+        from maxfs.storage.spec import is_job_folder
 
         out = Path(out)
         if out.exists():

@@ -31,8 +31,9 @@ from maxfs.service.http.index import JobIndex
 from maxfs.service.http.quotas import JobLimits
 from maxfs.service.runs.cluster import DaskCluster, start_cluster
 from maxfs.service.runs.fairness import FairShare
-from maxfs.service.runs.local import finish
+from maxfs.service.runs.local import finish_beside_depth
 from maxfs.service.runs.orchestrator import run_job
+from maxfs.service.runs.timings import Timings
 from maxfs.service.settings import Settings
 from maxfs.storage.errors import (
     ConflictError,
@@ -66,6 +67,13 @@ def _check_id(job_id: str) -> str:
     if not (len(job_id) == 32 and all(c in "0123456789abcdef" for c in job_id)):
         raise NotFoundError(f"no job {job_id!r}: job ids are 32 hexadecimal characters")
     return job_id
+
+
+def _finish(job_dir: Path) -> list[str]:
+    """Previews, depth and the calibration checks of a finished job, depth on a thread of its own
+    beside the other two (:func:`service.runs.local.finish_beside_depth`): the job's workers are
+    done, and this process alone would leave a core idle."""
+    return finish_beside_depth(job_dir, Timings())
 
 
 class JobManager:
@@ -414,7 +422,7 @@ class JobManager:
                     fair=self.fair,
                     user=owner,
                     tile_time_limit=self.settings.tile_time_limit or None,
-                    finish=finish,  # previews and depth, as `maxfs run` makes them
+                    finish=_finish,  # previews and depth, as `maxfs run` makes them
                     on_progress=lambda rec: self.changed(job_id),  # wakes waiting status requests
                 )
             except asyncio.CancelledError:

@@ -4,10 +4,11 @@ Owner, state, index, declared size and disk space are checked before the body is
 (:meth:`Uploads.before_upload`, :func:`service.http.guards.check_declared`); a raw image body is
 streamed to a staging file in the job folder (digested as it arrives), validated whole, then
 written to the store one shard band at a time (:func:`raw_bands`), so the server holds one band
-of one image per request, whatever k is, and a rejected upload leaves the store as it was. A
+of one image per request (a whole image of at most 1 MiB, which is one shard), whatever k is, and
+a rejected upload leaves the store as it was. A
 PNG or TIFF body (at most twice the image plus 1 MiB) is read into memory, as its decoder
 needs it whole. A batch of raw images (:meth:`Uploads.images`) is one raw upload per image,
-back to back in one body.
+back to back in one body; its images of at most 1 MiB are gathered in memory, not staged.
 """
 
 from __future__ import annotations
@@ -40,6 +41,12 @@ def raw_bands(path: Path, spec: JobSpec, rows: int) -> Iterator[np.ndarray]:
             n = min(rows, spec.height - y)
             band = np.fromfile(f, dtype=wire, count=n * per_row).reshape(n, *row_shape)
             yield band.astype(spec.dtype, copy=False)
+
+
+#: Images of a batch upload (:meth:`Uploads.images`) of at most this many bytes are gathered in
+#: memory instead of a staging file: the size up to which an image is one shard, held whole by
+#: its upload anyway (:data:`storage.layout.WHOLE_IMAGE_SHARD_BYTES`).
+IN_MEMORY_IMAGE_BYTES = 1 << 20
 
 
 class Uploads:
@@ -150,6 +157,10 @@ class Uploads:
                 "little-endian, row-major, one after the other)"
             )
         folder, stored = self.m.job_dir(job_id), []
+        # a small image is gathered in memory (at most one at a time per request), a larger one
+        # staged to a file as a single upload is: creating, reading back and removing a file
+        # per image cost more than storing a small image
+        in_memory = size <= IN_MEMORY_IMAGE_BYTES
         # every image of the batch stored, and the one being staged, reserved before a byte is written
         hold = self.m.disk.hold(limit + size, f"images {first}..{last}")
         with self.m.uploads.take(user_of(request).name), hold:
@@ -162,21 +173,31 @@ class Uploads:
                     while view:
                         index = first + len(stored)
                         if f is None:
-                            fd, name = tempfile.mkstemp(
-                                prefix=f"{TEMP_PREFIX}upload-{index}-", suffix=".part", dir=folder
-                            )
-                            part, f = Path(name), os.fdopen(fd, "wb", buffering=0)
+                            if in_memory:
+                                f = bytearray()
+                            else:
+                                fd, name = tempfile.mkstemp(
+                                    prefix=f"{TEMP_PREFIX}upload-{index}-", suffix=".part", dir=folder
+                                )
+                                part, f = Path(name), os.fdopen(fd, "wb", buffering=0)
                             hasher, got = ArrayHasher(spec.image_shape, spec.dtype), 0
                         piece, view = view[: size - got], view[size - got :]
-                        f.write(piece)
+                        if in_memory:
+                            f += piece
+                        else:
+                            f.write(piece)
                         hasher.h.update(piece)
                         got += len(piece)
                         if got < size:
                             continue
-                        f.close()
-                        f = None
-                        await self._store_raw(job_id, index, spec, part, hasher.digest(), record=False)
-                        part.unlink(missing_ok=True)
+                        if in_memory:
+                            data, f = f, None
+                            await self._store_bytes(job_id, index, spec, data, hasher.digest())
+                        else:
+                            f.close()
+                            f = None
+                            await self._store_raw(job_id, index, spec, part, hasher.digest(), record=False)
+                            part.unlink(missing_ok=True)
                         stored.append(index)
                 if len(stored) != count:
                     received = len(stored) * size + (got if f is not None else 0)
@@ -185,11 +206,25 @@ class Uploads:
                         f"the {len(stored)} whole images that came first are stored"
                     )
             finally:
-                if f is not None:
+                if f is not None and not in_memory:
                     f.close()
                 if part is not None:
                     part.unlink(missing_ok=True)
                 await self.m.record_uploads(job_id, stored)
+
+    async def _store_bytes(
+        self, job_id: str, index: int, spec: JobSpec, data: bytearray, digest: bytes
+    ) -> None:
+        """Store image ``index`` of a batch from its raw little-endian bytes in memory; the job
+        record is saved by the batch's caller, once for all its images."""
+        image = np.frombuffer(data, dtype=np.dtype(spec.dtype).newbyteorder("<")).reshape(spec.image_shape)
+
+        def write(st: JobStore) -> None:
+            rows = st.band_rows
+            bands = (image[y : y + rows].astype(spec.dtype, copy=False) for y in range(0, spec.height, rows))
+            st.write_bands(index, bands, digest=digest)
+
+        await self.m.upload_image(job_id, index, write, record=False)
 
     async def _store_raw(
         self, job_id: str, index: int, spec: JobSpec, part: Path, digest: bytes, *, record: bool = True
