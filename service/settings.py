@@ -123,8 +123,9 @@ class Settings:
     #: Memory one tile task may use for its arrays; sets the automatic tile size.
     task_memory: int = DEFAULT_TASK_MEMORY
     #: ``maxfs run`` without a scheduler solves in its own process, on ``workers`` threads
-    #: with the stack in memory, when the stack is at most this many bytes; larger stacks
-    #: go to the embedded Dask cluster, which reads tiles from the store.
+    #: with the stack in memory (cut to the mask's bounding box), when the whole stack is at
+    #: most this many bytes; larger stacks go to the embedded Dask cluster, which reads tiles
+    #: from the store.
     in_process_bytes: int = 2 << 30
     #: Seconds between job-record saves while a job runs.
     progress_interval: float = 1.0
