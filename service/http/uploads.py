@@ -13,11 +13,13 @@ back to back in one body; its images of at most 1 MiB are gathered in memory, no
 
 from __future__ import annotations
 
+import contextlib
+import io
 import os
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 import numpy as np
 from fastapi import Request
@@ -31,15 +33,16 @@ from maxfs.storage.errors import ConflictError, InvalidInputError, NotFoundError
 from maxfs.storage.layout import JobSpec, JobStore
 
 
-def raw_bands(path: Path, spec: JobSpec, rows: int) -> Iterator[np.ndarray]:
-    """Bands of ``rows`` rows of a raw little-endian image file."""
+def raw_bands(source: Path | BinaryIO, spec: JobSpec, rows: int) -> Iterator[np.ndarray]:
+    """Bands of ``rows`` rows of a raw little-endian image: a staged file, or one gathered in
+    memory (read from its current position)."""
     wire = np.dtype(spec.dtype).newbyteorder("<")
     row_shape = spec.image_shape[1:]
     per_row = int(np.prod(row_shape))
-    with open(path, "rb") as f:
+    with open(source, "rb") if isinstance(source, Path) else contextlib.nullcontext(source) as f:
         for y in range(0, spec.height, rows):
             n = min(rows, spec.height - y)
-            band = np.fromfile(f, dtype=wire, count=n * per_row).reshape(n, *row_shape)
+            band = np.frombuffer(f.read(n * per_row * wire.itemsize), dtype=wire).reshape(n, *row_shape)
             yield band.astype(spec.dtype, copy=False)
 
 
@@ -174,7 +177,7 @@ class Uploads:
                         index = first + len(stored)
                         if f is None:
                             if in_memory:
-                                f = bytearray()
+                                f = io.BytesIO()
                             else:
                                 fd, name = tempfile.mkstemp(
                                     prefix=f"{TEMP_PREFIX}upload-{index}-", suffix=".part", dir=folder
@@ -182,21 +185,21 @@ class Uploads:
                                 part, f = Path(name), os.fdopen(fd, "wb", buffering=0)
                             hasher, got = ArrayHasher(spec.image_shape, spec.dtype), 0
                         piece, view = view[: size - got], view[size - got :]
-                        if in_memory:
-                            f += piece
-                        else:
-                            f.write(piece)
+                        f.write(piece)
                         hasher.h.update(piece)
                         got += len(piece)
                         if got < size:
                             continue
+                        source: Path | BinaryIO
                         if in_memory:
-                            data, f = f, None
-                            await self._store_bytes(job_id, index, spec, data, hasher.digest())
+                            f.seek(0)
+                            source = f
                         else:
                             f.close()
-                            f = None
-                            await self._store_raw(job_id, index, spec, part, hasher.digest(), record=False)
+                            source = part
+                        f = None
+                        await self._store_raw(job_id, index, spec, source, hasher.digest(), record=False)
+                        if part is not None:
                             part.unlink(missing_ok=True)
                         stored.append(index)
                 if len(stored) != count:
@@ -206,30 +209,24 @@ class Uploads:
                         f"the {len(stored)} whole images that came first are stored"
                     )
             finally:
-                if f is not None and not in_memory:
+                if f is not None:
                     f.close()
                 if part is not None:
                     part.unlink(missing_ok=True)
                 await self.m.record_uploads(job_id, stored)
 
-    async def _store_bytes(
-        self, job_id: str, index: int, spec: JobSpec, data: bytearray, digest: bytes
-    ) -> None:
-        """Store image ``index`` of a batch from its raw little-endian bytes in memory; the job
-        record is saved by the batch's caller, once for all its images."""
-        image = np.frombuffer(data, dtype=np.dtype(spec.dtype).newbyteorder("<")).reshape(spec.image_shape)
-
-        def write(st: JobStore) -> None:
-            rows = st.band_rows
-            bands = (image[y : y + rows].astype(spec.dtype, copy=False) for y in range(0, spec.height, rows))
-            st.write_bands(index, bands, digest=digest)
-
-        await self.m.upload_image(job_id, index, write, record=False)
-
     async def _store_raw(
-        self, job_id: str, index: int, spec: JobSpec, part: Path, digest: bytes, *, record: bool = True
+        self,
+        job_id: str,
+        index: int,
+        spec: JobSpec,
+        part: Path | BinaryIO,
+        digest: bytes,
+        *,
+        record: bool = True,
     ) -> None:
-        """Store image ``index`` from its staged raw file and the digest made as it arrived;
+        """Store image ``index`` from its raw bytes (a staged file, or a small image of a batch
+        gathered in memory; :func:`raw_bands`) and the digest made as it arrived;
         ``record=False`` in a batch, whose caller saves the job record once for all its images."""
 
         def write(st: JobStore) -> None:
