@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import importlib.util
+import os
 import subprocess
 import sys
 import time
@@ -92,6 +93,31 @@ def test_maxfs_warm_says_loaded_from_the_cache_once_compiled() -> None:
     out = subprocess.run([MAXFS, "warm"], capture_output=True, text=True, timeout=600)
     assert out.returncode == 0, out.stderr
     assert out.stdout.startswith("solver kernels ready: loaded from the cache in "), out.stdout
+
+
+def test_warm_byte_compiles_a_package_once_and_again_after_an_edit(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``maxfs warm`` writes every module's bytecode (subpackages too) even where Python would not
+    (PYTHONDONTWRITEBYTECODE); a second warm compiles nothing; an edited module is compiled again."""
+    from maxfs.service.cli.main import compile_bytecode
+
+    pkg = tmp_path / "warmpkg"
+    (pkg / "sub").mkdir(parents=True)
+    (pkg / "__init__.py").write_text("")
+    (pkg / "sub" / "__init__.py").write_text("")
+    mod = pkg / "sub" / "mod.py"
+    mod.write_text("X = 1\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setattr(sys, "dont_write_bytecode", True)
+    assert compile_bytecode(("warmpkg",)) == 3
+    assert Path(importlib.util.cache_from_source(str(mod))).is_file()
+    assert compile_bytecode(("warmpkg",)) == 0
+    mod.write_text("X = 22\n")
+    later = mod.stat().st_mtime + 10  # compileall compares whole seconds of mtime
+    os.utime(mod, (later, later))
+    assert compile_bytecode(("warmpkg",)) == 1
+    assert compile_bytecode(("no_such_package_here",)) == 0
 
 
 # --- images are named as the user numbers them --------------------------------------------------

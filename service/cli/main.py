@@ -333,6 +333,33 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+def compile_bytecode(packages: tuple[str, ...] = ("maxfs",)) -> int:
+    """Byte-compile every module of ``packages`` (and their subpackages) beside its source, as
+    ``pip install`` does for a wheel; returns the modules compiled now.
+
+    An editable install (the README's) has no ``.pyc`` until a module is imported with bytecode
+    writing on, and where ``PYTHONDONTWRITEBYTECODE`` is set (many CI and container images) never:
+    every command then compiles some 60 modules from source, about 0.15 s of CPU each time.
+    ``compileall`` writes them regardless, and imports read them (timestamps are checked, so an
+    edited source is compiled again). A folder that is not writable is left as it is."""
+    import compileall
+    import importlib.util
+    import io
+    from contextlib import redirect_stdout
+
+    done = 0
+    for name in packages:
+        spec = importlib.util.find_spec(name)
+        for folder in (spec.submodule_search_locations or []) if spec else []:
+            for path in [Path(folder), *(p.parent for p in Path(folder).rglob("*/__init__.py"))]:
+                if not os.access(path, os.W_OK):
+                    continue
+                with redirect_stdout(io.StringIO()) as said:  # it names each file it compiles
+                    compileall.compile_dir(path, maxlevels=0, quiet=0)
+                done += said.getvalue().count("Compiling ")
+    return done
+
+
 def cmd_warm(args: argparse.Namespace) -> int:
     from maxfs.worker.task import load_kernels
 
@@ -351,6 +378,9 @@ def cmd_warm(args: argparse.Namespace) -> int:
     scene = depth_scenes.sphere_ortho(16)
     integrate(scene.normal, scene.mask, method="bini", max_iterations=2)
     print(f"depth kernels ready in {time.perf_counter() - t:.1f} s")
+    # each subpackage's folder: the installed package maps maxfs.worker etc. to their own folders
+    n = compile_bytecode(("maxfs", "maxfs.storage", "maxfs.worker", "maxfs.service"))
+    print(f"bytecode ready ({n} modules compiled now)")
     return 0
 
 
