@@ -132,6 +132,28 @@ def test_token_create_list_revoke(tmp_path: Path) -> None:
     assert store.authenticate(token) is None
 
 
+def test_the_command_collects_its_young_generation_less_often() -> None:
+    """The ``maxfs`` script's process raises the young generation's threshold (imports are not
+    garbage) and keeps the older generations' as CPython has them."""
+    from maxfs.service.cli.entry import GC_GEN0
+
+    probe = (
+        "import gc, sys\n"
+        "before = gc.get_threshold()\n"
+        "import maxfs.service.cli.entry as e\n"
+        "sys.argv = ['maxfs', '--help']\n"
+        "try:\n    e.console()\nexcept SystemExit:\n    pass\n"
+        "print(before, gc.get_threshold(), file=sys.stderr)\n"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", probe], capture_output=True, text=True, env=dict(os.environ), timeout=60
+    )
+    before, after = out.stderr.strip().splitlines()[-1].split(") (")
+    b = [int(v) for v in before.strip("()").split(",")]
+    a = [int(v) for v in after.strip("()").split(",")]
+    assert a == [GC_GEN0, b[1], b[2]] and GC_GEN0 > b[0], out.stderr
+
+
 def test_the_command_keeps_blas_to_one_thread_unless_the_user_set_it() -> None:
     from maxfs.service.cli.entry import one_blas_thread
 

@@ -5,11 +5,13 @@ traceback of the import. So the script's first code is this module, standard lib
 answers SIGINT with one line and exit status 130 until :func:`maxfs.service.cli.main.console` is imported,
 whose own handlers take over from there (same line, same status).
 
-It also keeps the BLAS library to one thread, before numpy loads it (:func:`one_blas_thread`).
+It also keeps the BLAS library to one thread, before numpy loads it (:func:`one_blas_thread`),
+and makes the cyclic garbage collector's young generation larger (:func:`fewer_collections`).
 """
 
 from __future__ import annotations
 
+import gc
 import os
 import signal
 import sys
@@ -34,10 +36,27 @@ def one_blas_thread(env: dict[str, str] | os._Environ[str] = os.environ) -> None
         env.setdefault(name, "1")
 
 
+#: The young generation's threshold of :func:`fewer_collections` (CPython's default: 700).
+GC_GEN0 = 20_000
+
+
+def fewer_collections() -> None:
+    """Collect the youngest generation after ``GC_GEN0`` net allocations instead of 700.
+
+    A run imports numba, zarr and numpy: a few hundred thousand objects, none of them garbage.
+    With the default threshold ``maxfs run`` collected about 350 times, twice the whole heap,
+    0.1-0.25 s of a 3-4 s command spent walking live objects (measured with ``gc.callbacks`` on
+    bench.phases's capture); with 20,000 it collects about 10 times and never the whole heap.
+    Cycles still go: later, in batches, and a CLI process is short-lived."""
+    _, g1, g2 = gc.get_threshold()
+    gc.set_threshold(GC_GEN0, g1, g2)
+
+
 def console() -> None:
     """Install the quiet handler, import the CLI, hand SIGINT back to Python, run it."""
     signal.signal(signal.SIGINT, _quiet)
     one_blas_thread()
+    fewer_collections()
     from maxfs.service.cli.main import console as run
 
     signal.signal(signal.SIGINT, signal.default_int_handler)
