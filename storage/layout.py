@@ -88,7 +88,7 @@ from maxfs.storage.outputs import (
     TILE_OUTPUTS,
 )
 from maxfs.storage.params import JobParams
-from maxfs.storage.shards import ChunkWriter, ShardReader, ShardWriter
+from maxfs.storage.shards import ChunkFiles, ChunkWriter, ShardReader, ShardWriter
 
 # the spec and the store's place, kept in a module without zarr (see there), named here too
 from maxfs.storage.spec import GROUP_DIR, JobSpec, is_job_folder, job_folder  # noqa: F401
@@ -173,6 +173,7 @@ class JobStore:
         self._arrays: dict[str, zarr.Array] = {}
         self._writer: tuple[ShardWriter | None] | None = None  # (writer,) once looked up
         self._small: dict[str, ChunkWriter | None] = {}  # see _small_writer
+        self._files: dict[str, ChunkFiles | None] = {}  # see _chunk_files
         self._reader: tuple[ShardReader | None] | None = None  # (reader,) once looked up
         self._counts: tuple[tuple[bytes, int], NDArray[np.int64]] | None = None
         attrs = dict(group.attrs)
@@ -626,25 +627,50 @@ class JobStore:
             raise ValueError(f"tile result lacks {', '.join(missing)}")
         self._write_outputs(t, arrays, token, stats)
 
+    def _chunk_files(self, name: str) -> ChunkFiles | None:
+        """The direct writer of whole chunks of array ``name`` (:class:`storage.shards.ChunkFiles`),
+        made once; None for an array it does not write, or a store opened read-only."""
+        if name not in self._files:
+            if self.group.store.read_only:  # zarr refuses the write with its own error
+                self._files[name] = None
+            else:
+                folder = self.path / GROUP_DIR / PATHS.get(name, name)
+                self._files[name] = ChunkFiles.for_array(folder, self._fixed(name))
+        return self._files[name]
+
     def _write_outputs(
         self, t: Tile, arrays: Mapping[str, NDArray[Any]], token: int, stats: tuple[int, int, int]
     ) -> None:
         ys, xs = slice(t.y0, t.y1), slice(t.x0, t.x1)
-        writes = []
+        parts: list[tuple[str, tuple[slice, ...], Any]] = []
         for o in TILE_OUTPUTS:
-            if not o.exists(self.spec.channels):
-                continue
-            a = self._fixed(o.name)
-            value = arrays.get(o.name, a.fill_value)
-            writes.append(
-                a.async_array.setitem((slice(None), ys, xs) if o.per == "image" else (ys, xs), value)
-            )
-        stats_row = np.asarray(stats, dtype=np.int64)
-        writes.append(self._fixed("tile_stats").async_array.setitem((t.ty, t.tx), stats_row))
-        # every chunk of the tile in one pass of Zarr's event loop (one at a time, each write
-        # waited for the loop's round trip), then the done marker, only once they are all on disk
-        sync(_gather(writes))
-        self._fixed("done")[t.ty, t.tx] = token
+            if o.exists(self.spec.channels):
+                region = (slice(None), ys, xs) if o.per == "image" else (ys, xs)
+                parts.append((o.name, region, arrays.get(o.name, self._fixed(o.name).fill_value)))
+        ty, tx = slice(t.ty, t.ty + 1), slice(t.tx, t.tx + 1)
+        parts.append(("tile_stats", (ty, tx), np.asarray(stats, dtype=np.int64).reshape(1, 1, 3)))
+        # each part is one whole chunk of its array (chunks are tile-aligned): encoded and written
+        # here (storage.shards.ChunkFiles), the same files zarr writes; zarr for any other array
+        direct: list[tuple[ChunkFiles, tuple[int, ...], bytes | None]] = []
+        writes = []
+        for name, region, value in parts:
+            files = self._chunk_files(name)
+            coords = None if files is None else files.chunk_at(region)
+            if files is None or coords is None:
+                writes.append(self._fixed(name).async_array.setitem(region, value))
+            else:
+                direct.append((files, coords, files.encode(coords, value)))
+        for files, coords, data in direct:
+            files.put(coords, data)
+        if writes:  # in one pass of zarr's event loop, not a round trip each
+            sync(_gather(writes))
+        # the done marker last, once every chunk of the tile is in place
+        done = self._chunk_files("done")
+        at = None if done is None else done.chunk_at((ty, tx))
+        if done is None or at is None:
+            self._fixed("done")[t.ty, t.tx] = token
+        else:
+            done.put(at, done.encode(at, token))
 
     def tile_done(self, t: Tile) -> bool:
         """Whether tile ``t`` is finished with the current parameters."""
