@@ -22,7 +22,7 @@ edge, chunks are tile-aligned)::
     inputs/images (k, H, W[, C])  uint8|uint16|float32  chunks (1, T, T[, C]) in shards (1, T, W'[, C]),
                                                         or (1, H', W'[, C]) for images of at most 1 MiB
     inputs/uploaded (k,)          bool                  chunks (1,)   set after images[i]
-    inputs/input_digests (k + 1, 32) uint8              chunks (1, 32)    BLAKE2b of image i; row k: mask
+    inputs/input_digests (k + 1, 32) uint8              chunks (1, 32)    digest of image i; row k: mask
     tiles/done    (ny, nx)        int32                 chunks (1, 1)
     tiles/tile_stats (ny, nx, 3)  int64                 chunks (1, 1, 3)  active, solved, certified pixels
 
@@ -42,8 +42,9 @@ the array's metadata.
 An image is written as ``uploaded[i] = False``, its bands, then ``uploaded[i] =
 True``, so an upload cut short (a killed server) leaves the image marked missing.
 
-**Input identity.** Each image's digest is computed from the bands as they are written
-(no second read) and stored in ``input_digests[i]``; the mask's in row ``k``, which holds
+**Input identity.** Each image's digest (:mod:`storage.digests`: SHA-256 in new stores, BLAKE2b
+in format 4, as the group's ``input_digest`` attribute says) is computed from the bands as they
+are written (no second read) and stored in ``input_digests[i]``; the mask's in row ``k``, which holds
 :data:`MASK_WRITING` while a mask is being written, so a mask cut short by a crash is
 detected (:meth:`JobStore.mask_state`) and never used. :meth:`JobStore.input_identity`
 combines them with the lights and intensities: a store reused for other inputs is refused.
@@ -78,7 +79,7 @@ from numpy.typing import NDArray
 from zarr.codecs import ZstdCodec
 from zarr.core.sync import sync
 
-from maxfs.storage.digests import DIGEST_BYTES, ArrayHasher, array_digest
+from maxfs.storage.digests import DIGEST_BYTES, DIGESTS, LEGACY_DIGEST, ArrayHasher, array_digest
 from maxfs.storage.errors import ConflictError, InvalidInputError, NotFoundError, StoreError
 from maxfs.storage.observations import ObservationModel
 from maxfs.storage.outputs import (
@@ -96,8 +97,9 @@ from maxfs.storage.tiles import Tile, grid_shape, masked_per_tile, tiles
 
 
 def lights_digest(spec: JobSpec) -> str:
-    """Digest of a validated spec's light directions and intensities."""
-    return (array_digest(spec.lights) + array_digest(spec.intensities)).hex()
+    """Digest of a validated spec's light directions and intensities: BLAKE2b in every format
+    (a few hundred bytes, recorded in the group's attributes since format 1)."""
+    return (array_digest(spec.lights, LEGACY_DIGEST) + array_digest(spec.intensities, LEGACY_DIGEST)).hex()
 
 
 @dataclass(frozen=True)
@@ -112,7 +114,11 @@ class ProgressCounts:
     certified: int  # ... whose optimum was proved
 
 
-FORMAT_VERSION = 4
+#: The format new stores are written in. 5: the group's attributes name the hash of the input
+#: digests (``input_digest``, SHA-256 for new stores); 4 named none, its digests are BLAKE2b.
+FORMAT_VERSION = 5
+#: Formats this maxfs opens, read and resumed alike (the layout of 4 and 5 is the same).
+READ_FORMATS = (4, 5)
 #: Chunk keys of the per-image input arrays: files ``c.i.y.x...`` side by side in the array's
 #: folder, not a folder per image and band (``c/i/y/...``); creating a folder costs as much as
 #: writing the file, 0.3-2 ms each on the reference machine's ext4, about ten per image.
@@ -159,7 +165,9 @@ DESCRIPTIONS: dict[str, dict[str, str]] = {
     "intensities": {"long_name": "light intensities per image and channel"},
     "done": {"long_name": "per-tile marker: equal to the parameter token when the tile is finished"},
     "tile_stats": {"long_name": "per tile: active, solved and certified pixels"},
-    "input_digests": {"long_name": "BLAKE2b-256 of image i; last row: the mask"},
+    "input_digests": {
+        "long_name": "digest of image i (by the hash in the group's attribute input_digest); last row: mask"
+    },
     **{o.name: o.attrs() for o in OUTPUT_TABLE},
 }
 
@@ -177,12 +185,16 @@ class JobStore:
         self._reader: tuple[ShardReader | None] | None = None  # (reader,) once looked up
         self._counts: tuple[tuple[bytes, int], NDArray[np.int64]] | None = None
         attrs = dict(group.attrs)
-        if attrs.get("maxfs_format") != FORMAT_VERSION:
-            fmt = attrs.get("maxfs_format")
+        fmt = attrs.get("maxfs_format")
+        if fmt not in READ_FORMATS:
             raise StoreError(
                 f"{path} is not a maxfs job store of this version (format {fmt!r}, this maxfs writes "
-                f"{FORMAT_VERSION}); choose another output, or run with --overwrite to replace it"
+                f"{FORMAT_VERSION} and reads {', '.join(map(str, READ_FORMATS))}); choose another "
+                "output, or run with --overwrite to replace it"
             )
+        digest = LEGACY_DIGEST if fmt == 4 else attrs["input_digest"]
+        if digest not in DIGESTS:
+            raise StoreError(f"{path} holds input digests of {digest!r}, which this maxfs does not know")
         self.spec = JobSpec(
             k=attrs["k"],
             height=attrs["height"],
@@ -191,6 +203,7 @@ class JobStore:
             dtype=attrs["dtype"],
             lights=np.asarray(group["lights"][...]),
             intensities=np.asarray(group["intensities"][...]),
+            digest=digest,
         )
 
     def _fixed(self, name: str) -> zarr.Array:
@@ -314,6 +327,7 @@ class JobStore:
         g.update_attributes(
             {
                 "maxfs_format": FORMAT_VERSION,
+                "input_digest": spec.digest,
                 "k": k,
                 "height": H,
                 "width": W,
@@ -433,7 +447,7 @@ class JobStore:
         images, y = self._fixed("images"), 0
         writer, rows, H = self._shard_writer(), self.band_rows, self.spec.height
         self._set_row("uploaded", i, False)
-        h = ArrayHasher(self.spec.image_shape, self.spec.dtype) if digest is None else None
+        h = ArrayHasher(self.spec.image_shape, self.spec.dtype, self.spec.digest) if digest is None else None
         # whole shards are encoded on two threads while this one digests, at most two ahead
         encoding: deque[tuple[tuple[int, ...], Future[bytes | None]]] = deque()
         for band in bands:
@@ -481,7 +495,7 @@ class JobStore:
         arr, rows = self.group["mask"], int(self.group["mask"].chunks[0])
         for y in range(0, s.height, rows):
             arr[y : y + rows] = m[y : y + rows]
-        dig[s.k] = np.frombuffer(array_digest(m), np.uint8)
+        dig[s.k] = np.frombuffer(array_digest(m, s.digest), np.uint8)
 
     @property
     def lights_digest(self) -> str:
