@@ -474,12 +474,12 @@ class JobStore:
         self._set_row("uploaded", i, True)
 
     def uploaded(self) -> NDArray[np.bool_]:
-        return np.asarray(self._array("uploaded")[...])
+        return self._rows("uploaded")
 
     def digests(self) -> list[bytes]:
         """Recorded digests: images 0..k-1, then the mask (zeros = not written). One read of
         k + 1 chunks: callers that need several views of them take this list once."""
-        return [bytes(row) for row in np.asarray(self._array("input_digests")[...])]
+        return [bytes(row) for row in self._rows("input_digests")]
 
     def write_mask(self, mask: NDArray[np.bool_]) -> None:
         """Store the mask, band by band; a crash part-way leaves :meth:`mask_state`
@@ -520,12 +520,16 @@ class JobStore:
 
     def record_digests(self, digests: Mapping[int, bytes]) -> None:
         """Record images' digests without storing their pixels (a run that keeps the stack in
-        memory): the input identity holds, ``uploaded[i]`` stays False. One write for all (a
-        chunk per image, written together: one at a time cost 4 ms each)."""
+        memory): the input identity holds, ``uploaded[i]`` stays False. A chunk file per image,
+        written directly (:meth:`_set_row`), or through zarr in one write for all."""
         if not digests:
             return
         for i in digests:
             self.check_index(i)
+        if self._small_writer("input_digests") is not None:
+            for i, d in sorted(digests.items()):
+                self._set_row("input_digests", i, np.frombuffer(d, np.uint8))
+            return
         idx = sorted(digests)
         rows = np.stack([np.frombuffer(digests[i], np.uint8) for i in idx])
         self._array("input_digests").set_orthogonal_selection((np.asarray(idx), slice(None)), rows)
@@ -641,16 +645,31 @@ class JobStore:
             raise ValueError(f"tile result lacks {', '.join(missing)}")
         self._write_outputs(t, arrays, token, stats)
 
-    def _chunk_files(self, name: str) -> ChunkFiles | None:
-        """The direct writer of whole chunks of array ``name`` (:class:`storage.shards.ChunkFiles`),
-        made once; None for an array it does not write, or a store opened read-only."""
+    def _chunk_files(self, name: str, write: bool = True) -> ChunkFiles | None:
+        """The direct reader and writer of whole chunks of array ``name``
+        (:class:`storage.shards.ChunkFiles`), made once; None for an array it does not encode,
+        or for writing to a store opened read-only (zarr refuses the write with its own error)."""
         if name not in self._files:
-            if self.group.store.read_only:  # zarr refuses the write with its own error
-                self._files[name] = None
+            folder = self.path / GROUP_DIR / PATHS.get(name, name)
+            self._files[name] = ChunkFiles.for_array(folder, self._fixed(name))
+        return None if write and self.group.store.read_only else self._files[name]
+
+    def _rows(self, name: str) -> NDArray[Any]:
+        """The whole of a per-image array of one chunk per row (``uploaded``, ``input_digests``),
+        read straight from its chunk files (through zarr, each of the k + 1 chunks was a round
+        trip of zarr's event loop: 50-100 ms for 96 images); through zarr for other codecs or a
+        chunk that does not decode."""
+        files = self._chunk_files(name, write=False)
+        if files is not None and files.chunk[0] == 1 and files.chunk[1:] == files.shape[1:]:
+            out = np.empty(files.shape, files.dtype)
+            for i in range(files.shape[0]):
+                row = files.read((i, *(0,) * (len(files.shape) - 1)))
+                if row is None:
+                    break
+                out[i] = row[0]
             else:
-                folder = self.path / GROUP_DIR / PATHS.get(name, name)
-                self._files[name] = ChunkFiles.for_array(folder, self._fixed(name))
-        return self._files[name]
+                return out
+        return np.asarray(self._array(name)[...])
 
     def _write_outputs(
         self, t: Tile, arrays: Mapping[str, NDArray[Any]], token: int, stats: tuple[int, int, int]

@@ -294,6 +294,21 @@ class ChunkFiles:
             return None
         return bytes(self.zstd.encode(np.ascontiguousarray(chunk, dtype=self.stored)))
 
+    def read(self, coords: tuple[int, ...]) -> NDArray[Any] | None:
+        """Chunk ``coords``'s values (the whole chunk) as zarr reads them: the fill value where it
+        has no file; None where its file does not decode (zarr should read it, and raise)."""
+        path = self.folder / self.keys.encode_chunk_key(coords)
+        try:
+            with open(path, "rb") as f:
+                data = f.read()
+        except FileNotFoundError:
+            return np.full(self.chunk, self.fill, dtype=self.dtype)
+        try:
+            raw = np.frombuffer(self.zstd.decode(data), self.stored)
+            return raw.astype(self.dtype, copy=False).reshape(self.chunk)
+        except (RuntimeError, ValueError):  # numcodecs' zstd errors are RuntimeErrors
+            return None
+
     def put(self, coords: tuple[int, ...], data: bytes | None) -> None:
         """Write chunk ``coords``'s file of :meth:`encode`'s ``data`` (None: remove it)."""
         path = self.folder / self.keys.encode_chunk_key(coords)

@@ -99,6 +99,15 @@ def test_chunk_files_are_the_files_zarr_writes(
         assert {p for p in got if p != "zarr.json"} == {p for p in made if p != "zarr.json"}, rnd
         assert all(got[p] == made[p] for p in got if p != "zarr.json"), rnd
         np.testing.assert_array_equal(direct[...], by_zarr[...])
+        for pos in np.ndindex(*(len(r) for r in grid)):  # and read back as zarr reads them
+            region = tuple(
+                slice(p * c, min((p + 1) * c, n)) for p, c, n in zip(pos, chunks, shape, strict=True)
+            )
+            chunk = w.read(pos)
+            assert chunk is not None and chunk.dtype == by_zarr.dtype
+            np.testing.assert_array_equal(
+                chunk[tuple(slice(0, r.stop - r.start) for r in region)], by_zarr[region]
+            )
     assert not _hidden(tmp_path / "g")
 
 
@@ -266,3 +275,24 @@ def test_a_failed_chunk_write_leaves_no_file_and_no_marker(
     assert not _hidden(store.path)
     store.write_tile(t, _results(store, t, 1), store.params.token(), (1, 1, 1))
     assert store.tile_done(t)
+
+
+def test_the_per_image_rows_read_directly_are_what_zarr_reads(tmp_path: Path) -> None:
+    """``uploaded`` and ``input_digests`` (a chunk file per image) read straight from their files:
+    rows written, recorded, never written, and a chunk file that does not decode (left to zarr,
+    which raises)."""
+    store = _store(tmp_path / "s", None)
+    rng = np.random.default_rng(0)
+    store.write_image(1, rng.integers(0, 9, (37, 29), dtype=np.uint16))
+    store.record_digests({3: bytes(range(32)), 0: bytes(32 * [7])})
+    store._set_row("uploaded", 4, True)
+    again = JobStore.open(store.path, mode="r")
+    assert again.uploaded().tolist() == np.asarray(again.group["inputs/uploaded"][...]).tolist()
+    assert again.uploaded().tolist() == [False, True, False, False, True]
+    want = [bytes(r) for r in np.asarray(again.group["inputs/input_digests"][...])]
+    assert again.digests() == want
+    assert want[0] == bytes(32 * [7]) and want[3] == bytes(range(32)) and want[2] == bytes(32)
+    bad = next((tmp_path / "s" / GROUP_DIR / "inputs" / "input_digests").glob("c*3*"))
+    bad.write_bytes(b"not zstd")
+    with pytest.raises(Exception, match=r"(?i)zstd|decompress|frame|content"):
+        JobStore.open(store.path, mode="r").digests()
