@@ -511,9 +511,13 @@ class JobStore:
         if fp != self.source_fingerprint:
             self.group.attrs["source_fingerprint"] = fp
 
+    def digest_row(self, i: int) -> bytes:
+        """The recorded digest ``i`` (images 0..k-1, then the mask; zeros: none)."""
+        return bytes(self._read("input_digests", (slice(i, i + 1),))[0])
+
     def mask_state(self) -> str:
         """ "default" (none given: every pixel), "complete", or "incomplete" (a write was cut short)."""
-        d = bytes(np.asarray(self._array("input_digests")[self.spec.k]))
+        d = self.digest_row(self.spec.k)
         if d == MASK_WRITING:
             return "incomplete"
         return "default" if not any(d) else "complete"
@@ -554,7 +558,7 @@ class JobStore:
         return h.hexdigest()
 
     def read_mask(self) -> NDArray[np.bool_]:
-        return np.asarray(self.group["mask"][...])
+        return self._read("mask")
 
     # -- tiles --------------------------------------------------------------------------------
     def tiles(self) -> list[Tile]:
@@ -568,15 +572,14 @@ class JobStore:
         :meth:`write_empty_tile` ever writes there, so it needs no marker and no task. Reads the
         markers of the other tiles only (a chunk each)."""
         p = self.params
-        arr = self._array("done")
         if p.eps is None:
-            return np.zeros(np.asarray(arr.shape), dtype=bool)
+            return np.zeros(np.asarray(self._fixed("done").shape), dtype=bool)
         done = self.masked_per_tile() == 0
         ys, xs = np.nonzero(~done)
         if ys.size == done.size:
-            return np.asarray(arr[...]) == p.token()
+            return self._read("done") == p.token()
         if ys.size:
-            done[ys, xs] = np.asarray(arr.vindex[ys, xs]) == p.token()
+            done[ys, xs] = self._cells("done", ys, xs) == p.token()
         return done
 
     def read_tile(self, t: Tile) -> tuple[NDArray[Any], NDArray[np.bool_]]:
@@ -617,7 +620,7 @@ class JobStore:
         return read
 
     def read_tile_mask(self, t: Tile) -> NDArray[np.bool_]:
-        return np.asarray(self._fixed("mask")[t.y0 : t.y1, t.x0 : t.x1])
+        return self._read("mask", (slice(t.y0, t.y1), slice(t.x0, t.x1)))
 
     def write_empty_tile(self, t: Tile, token: int) -> None:
         """A tile with no masked pixel: every output at its fill value, zero stats, done marker."""
@@ -626,7 +629,7 @@ class JobStore:
     def masked_per_tile(self) -> NDArray[np.int64]:
         """Masked pixels of each tile, on the tile grid ``(ny, nx)``; counted once per mask (this
         store object keeps the counts with the mask's digest, which a new mask changes)."""
-        key = (bytes(np.asarray(self._array("input_digests")[self.spec.k])), self.params.tile)
+        key = (self.digest_row(self.spec.k), self.params.tile)
         if self._counts is not None and self._counts[0] == key:
             return self._counts[1].copy()
         counts = masked_per_tile(self.read_mask(), self.params.tile)
@@ -653,6 +656,25 @@ class JobStore:
             folder = self.path / GROUP_DIR / PATHS.get(name, name)
             self._files[name] = ChunkFiles.for_array(folder, self._fixed(name))
         return None if write and self.group.store.read_only else self._files[name]
+
+    def _read(self, name: str, region: tuple[slice, ...] = ()) -> NDArray[Any]:
+        """``region`` of array ``name`` (one created with the store: see :meth:`_fixed`), read
+        straight from its chunk files (:meth:`storage.shards.ChunkFiles.read_region`), or through
+        zarr for other codecs or a chunk that does not decode."""
+        files = self._chunk_files(name, write=False)
+        got = None if files is None else files.read_region(region)
+        return np.asarray(self._fixed(name)[region or ...]) if got is None else got
+
+    def _cells(
+        self, name: str, ys: NDArray[np.intp] | list[int], xs: NDArray[np.intp] | list[int]
+    ) -> NDArray[Any]:
+        """Tile-grid cells ``(ys[i], xs[i])`` of ``done`` or ``tile_stats`` (a chunk per tile), each
+        with its trailing values: ``(len(ys), ...)``."""
+        a = self._fixed(name)
+        out = np.empty((len(ys), *a.shape[2:]), dtype=np.dtype(a.dtype))
+        for i, (y, x) in enumerate(zip(ys, xs, strict=True)):
+            out[i] = self._read(name, (slice(int(y), int(y) + 1), slice(int(x), int(x) + 1)))[0, 0]
+        return out
 
     def _rows(self, name: str) -> NDArray[Any]:
         """The whole of a per-image array of one chunk per row (``uploaded``, ``input_digests``),
@@ -708,7 +730,7 @@ class JobStore:
     def tile_done(self, t: Tile) -> bool:
         """Whether tile ``t`` is finished with the current parameters."""
         p = self.params
-        return p.eps is not None and int(self._fixed("done")[t.ty, t.tx]) == p.token()
+        return p.eps is not None and int(self._cells("done", [t.ty], [t.tx])[0]) == p.token()
 
     def progress(self) -> ProgressCounts:
         """Counts over the finished tiles, from the done grid and per-tile stats only."""
@@ -716,9 +738,7 @@ class JobStore:
         done = self.done_grid() & (counts > 0)
         # the stats of finished tiles with masked pixels (the others' are zeros): a chunk each
         ys, xs = np.nonzero(done)
-        cols = np.arange(3)
-        flat = self._array("tile_stats").vindex[np.repeat(ys, 3), np.repeat(xs, 3), np.tile(cols, ys.size)]
-        stats = np.asarray(flat, dtype=np.int64).reshape(-1, 3)
+        stats = self._cells("tile_stats", ys, xs).astype(np.int64).reshape(-1, 3)
         return ProgressCounts(
             tiles_done=int(done.sum()),
             tiles_total=int(np.count_nonzero(counts)),
@@ -741,13 +761,15 @@ class JobStore:
         a look-up (most of the frame, for an object in balanced small tiles)."""
         if name not in OUTPUTS_BY_NAME or name not in self.group:
             raise NotFoundError(f"no output array {name!r}; available: {', '.join(self.output_names())}")
-        a = self.group[name]
         o = OUTPUTS_BY_NAME[name]
+        if o.made == "after":  # made after the run, and again by each re-integration: metadata read now
+            return np.asarray(self.group[name][...])
+        a = self._fixed(name)
         if o.made != "tile":
-            return np.asarray(a[...])
+            return self._read(name)
         ty, tx = np.nonzero(self.masked_per_tile())
         if ty.size == 0:
-            return np.asarray(a[...])
+            return self._read(name)
         T, (H, W) = self.params.tile, (self.spec.height, self.spec.width)
         box = {
             "y": slice(int(ty.min()) * T, min((int(ty.max()) + 1) * T, H)),
@@ -755,9 +777,9 @@ class JobStore:
         }
         region = tuple(box.get(d, slice(0, n)) for d, n in zip(o.dims, a.shape, strict=True))
         if all(r == slice(0, n) for r, n in zip(region, a.shape, strict=True)):
-            return np.asarray(a[...])
+            return self._read(name)
         out = np.full(a.shape, a.fill_value, dtype=a.dtype)
-        out[region] = a[region]
+        out[region] = self._read(name, region)
         return out
 
     def output_names(self) -> list[str]:

@@ -108,6 +108,11 @@ def test_chunk_files_are_the_files_zarr_writes(
             np.testing.assert_array_equal(
                 chunk[tuple(slice(0, r.stop - r.start) for r in region)], by_zarr[region]
             )
+        for _ in range(12):  # any region, across chunks and the far edges, as zarr reads it
+            ends = [np.sort(rng.integers(0, n + 1, 2)) for n in shape]
+            region = tuple(slice(int(lo), int(hi)) for lo, hi in ends)
+            np.testing.assert_array_equal(w.read_region(region), by_zarr[region])
+    assert w.read_region((slice(0, 4, 2),)) is None  # with a step: left to zarr
     assert not _hidden(tmp_path / "g")
 
 
@@ -192,6 +197,11 @@ def test_tiles_written_directly_leave_the_store_zarr_leaves(
     for name in [*again.output_names(), "done", "tile_stats"]:
         np.testing.assert_array_equal(again.read_array(name), ref.read_array(name), err_msg=name)
     assert again.done_grid().sum() == 2  # the tiles written with the current parameters' token
+    for name in again.output_names():  # read straight from the files, as zarr reads them
+        np.testing.assert_array_equal(again.read_output(name), ref.group[name][...], err_msg=name)
+    assert again.progress() == ref.progress()
+    t = again.tiles()[5]
+    np.testing.assert_array_equal(again.read_tile_mask(t), ref.group["mask"][t.y0 : t.y1, t.x0 : t.x1])
 
 
 #: A process that writes tile 0 of the store in ``argv[1]`` and is SIGKILLed at its ``argv[2]``-th
