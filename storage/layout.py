@@ -490,12 +490,23 @@ class JobStore:
                 f"mask has shape {mask.shape}, the job's images are {s.height} x {s.width}"
             )
         m = np.ascontiguousarray(mask, dtype=bool)
-        dig = self._array("input_digests")
-        dig[s.k] = np.frombuffer(MASK_WRITING, np.uint8)
-        arr, rows = self.group["mask"], int(self.group["mask"].chunks[0])
+        row = (slice(s.k, s.k + 1),)
+        self._write("input_digests", row, np.frombuffer(MASK_WRITING, np.uint8)[None])
+        rows = int(self._fixed("mask").chunks[0])
         for y in range(0, s.height, rows):
-            arr[y : y + rows] = m[y : y + rows]
-        dig[s.k] = np.frombuffer(array_digest(m, s.digest), np.uint8)
+            self._write("mask", (slice(y, min(y + rows, s.height)),), m[y : y + rows])
+        self._write("input_digests", row, np.frombuffer(array_digest(m, s.digest), np.uint8)[None])
+
+    def _write(self, name: str, region: tuple[slice, ...], value: NDArray[Any]) -> None:
+        """``array[region] = value`` for an array created with the store: straight to the chunk's
+        file where ``region`` is one whole chunk (:class:`storage.shards.ChunkFiles`, renamed into
+        place: a reader sees the old chunk or the new one), else through zarr."""
+        files = self._chunk_files(name)
+        at = None if files is None else files.chunk_at(region)
+        if files is None or at is None:
+            self._fixed(name)[region] = value
+        else:
+            files.put(at, files.encode(at, value))
 
     @property
     def lights_digest(self) -> str:

@@ -180,6 +180,9 @@ def test_tiles_written_directly_leave_the_store_zarr_leaves(
         store._files.clear()
         tiles, token = store.tiles(), store.params.token()
         assert len(tiles) == 6
+        mask = np.ones((37, 29), bool)  # its first band all True (the fill value: no file)
+        mask[20:, ::3] = False
+        store.write_mask(mask)
         for t in tiles:  # with other parameters' token
             if t.index == 1:
                 store.write_empty_tile(t, token=token + 1)
