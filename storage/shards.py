@@ -278,7 +278,8 @@ class ChunkFiles:
         scalar for all of them), as zarr writes it; None when every value is the fill value
         (zarr stores no file then)."""
         inside = tuple(min(c, n - i * c) for i, c, n in zip(coords, self.chunk, self.shape, strict=True))
-        v = np.asarray(value)
+        # a scalar is converted as zarr converts it (an int out of the dtype's range raises)
+        v = np.asarray(value, dtype=self.dtype) if np.isscalar(value) else np.asarray(value)
         if inside == self.chunk and v.shape == self.chunk:
             chunk = v.astype(self.dtype, copy=False)
         else:  # a scalar, or at the array's far edge: zarr encodes whole chunks, padded with the fill
