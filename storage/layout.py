@@ -22,7 +22,7 @@ edge, chunks are tile-aligned)::
     inputs/images (k, H, W[, C])  uint8|uint16|float32  chunks (1, T, T[, C]) in shards (1, T, W'[, C]),
                                                         or (1, H', W'[, C]) for images of at most 1 MiB
     inputs/uploaded (k,)          bool                  chunks (1,)   set after images[i]
-    inputs/input_digests (k + 1, 32) uint8              chunks (1, 32)    BLAKE2b of image i; row k: mask
+    inputs/input_digests (k + 1, 32) uint8              chunks (1, 32)    digest of image i; row k: mask
     tiles/done    (ny, nx)        int32                 chunks (1, 1)
     tiles/tile_stats (ny, nx, 3)  int64                 chunks (1, 1, 3)  active, solved, certified pixels
 
@@ -42,8 +42,9 @@ the array's metadata.
 An image is written as ``uploaded[i] = False``, its bands, then ``uploaded[i] =
 True``, so an upload cut short (a killed server) leaves the image marked missing.
 
-**Input identity.** Each image's digest is computed from the bands as they are written
-(no second read) and stored in ``input_digests[i]``; the mask's in row ``k``, which holds
+**Input identity.** Each image's digest (:mod:`storage.digests`: SHA-256 in new stores, BLAKE2b
+in format 4, as the group's ``input_digest`` attribute says) is computed from the bands as they
+are written (no second read) and stored in ``input_digests[i]``; the mask's in row ``k``, which holds
 :data:`MASK_WRITING` while a mask is being written, so a mask cut short by a crash is
 detected (:meth:`JobStore.mask_state`) and never used. :meth:`JobStore.input_identity`
 combines them with the lights and intensities: a store reused for other inputs is refused.
@@ -78,7 +79,7 @@ from numpy.typing import NDArray
 from zarr.codecs import ZstdCodec
 from zarr.core.sync import sync
 
-from maxfs.storage.digests import DIGEST_BYTES, ArrayHasher, array_digest
+from maxfs.storage.digests import DIGEST_BYTES, DIGESTS, LEGACY_DIGEST, ArrayHasher, array_digest
 from maxfs.storage.errors import ConflictError, InvalidInputError, NotFoundError, StoreError
 from maxfs.storage.observations import ObservationModel
 from maxfs.storage.outputs import (
@@ -88,7 +89,7 @@ from maxfs.storage.outputs import (
     TILE_OUTPUTS,
 )
 from maxfs.storage.params import JobParams
-from maxfs.storage.shards import ChunkWriter, ShardReader, ShardWriter
+from maxfs.storage.shards import ChunkFiles, ChunkWriter, ShardReader, ShardWriter
 
 # the spec and the store's place, kept in a module without zarr (see there), named here too
 from maxfs.storage.spec import GROUP_DIR, JobSpec, is_job_folder, job_folder  # noqa: F401
@@ -96,8 +97,9 @@ from maxfs.storage.tiles import Tile, grid_shape, masked_per_tile, tiles
 
 
 def lights_digest(spec: JobSpec) -> str:
-    """Digest of a validated spec's light directions and intensities."""
-    return (array_digest(spec.lights) + array_digest(spec.intensities)).hex()
+    """Digest of a validated spec's light directions and intensities: BLAKE2b in every format
+    (a few hundred bytes, recorded in the group's attributes since format 1)."""
+    return (array_digest(spec.lights, LEGACY_DIGEST) + array_digest(spec.intensities, LEGACY_DIGEST)).hex()
 
 
 @dataclass(frozen=True)
@@ -112,7 +114,11 @@ class ProgressCounts:
     certified: int  # ... whose optimum was proved
 
 
-FORMAT_VERSION = 4
+#: The format new stores are written in. 5: the group's attributes name the hash of the input
+#: digests (``input_digest``, SHA-256 for new stores); 4 named none, its digests are BLAKE2b.
+FORMAT_VERSION = 5
+#: Formats this maxfs opens, read and resumed alike (the layout of 4 and 5 is the same).
+READ_FORMATS = (4, 5)
 #: Chunk keys of the per-image input arrays: files ``c.i.y.x...`` side by side in the array's
 #: folder, not a folder per image and band (``c/i/y/...``); creating a folder costs as much as
 #: writing the file, 0.3-2 ms each on the reference machine's ext4, about ten per image.
@@ -159,7 +165,9 @@ DESCRIPTIONS: dict[str, dict[str, str]] = {
     "intensities": {"long_name": "light intensities per image and channel"},
     "done": {"long_name": "per-tile marker: equal to the parameter token when the tile is finished"},
     "tile_stats": {"long_name": "per tile: active, solved and certified pixels"},
-    "input_digests": {"long_name": "BLAKE2b-256 of image i; last row: the mask"},
+    "input_digests": {
+        "long_name": "digest of image i (by the hash in the group's attribute input_digest); last row: mask"
+    },
     **{o.name: o.attrs() for o in OUTPUT_TABLE},
 }
 
@@ -173,15 +181,20 @@ class JobStore:
         self._arrays: dict[str, zarr.Array] = {}
         self._writer: tuple[ShardWriter | None] | None = None  # (writer,) once looked up
         self._small: dict[str, ChunkWriter | None] = {}  # see _small_writer
+        self._files: dict[str, ChunkFiles | None] = {}  # see _chunk_files
         self._reader: tuple[ShardReader | None] | None = None  # (reader,) once looked up
         self._counts: tuple[tuple[bytes, int], NDArray[np.int64]] | None = None
         attrs = dict(group.attrs)
-        if attrs.get("maxfs_format") != FORMAT_VERSION:
-            fmt = attrs.get("maxfs_format")
+        fmt = attrs.get("maxfs_format")
+        if fmt not in READ_FORMATS:
             raise StoreError(
                 f"{path} is not a maxfs job store of this version (format {fmt!r}, this maxfs writes "
-                f"{FORMAT_VERSION}); choose another output, or run with --overwrite to replace it"
+                f"{FORMAT_VERSION} and reads {', '.join(map(str, READ_FORMATS))}); choose another "
+                "output, or run with --overwrite to replace it"
             )
+        digest = LEGACY_DIGEST if fmt == 4 else attrs["input_digest"]
+        if digest not in DIGESTS:
+            raise StoreError(f"{path} holds input digests of {digest!r}, which this maxfs does not know")
         self.spec = JobSpec(
             k=attrs["k"],
             height=attrs["height"],
@@ -190,6 +203,7 @@ class JobStore:
             dtype=attrs["dtype"],
             lights=np.asarray(group["lights"][...]),
             intensities=np.asarray(group["intensities"][...]),
+            digest=digest,
         )
 
     def _fixed(self, name: str) -> zarr.Array:
@@ -313,6 +327,7 @@ class JobStore:
         g.update_attributes(
             {
                 "maxfs_format": FORMAT_VERSION,
+                "input_digest": spec.digest,
                 "k": k,
                 "height": H,
                 "width": W,
@@ -432,7 +447,7 @@ class JobStore:
         images, y = self._fixed("images"), 0
         writer, rows, H = self._shard_writer(), self.band_rows, self.spec.height
         self._set_row("uploaded", i, False)
-        h = ArrayHasher(self.spec.image_shape, self.spec.dtype) if digest is None else None
+        h = ArrayHasher(self.spec.image_shape, self.spec.dtype, self.spec.digest) if digest is None else None
         # whole shards are encoded on two threads while this one digests, at most two ahead
         encoding: deque[tuple[tuple[int, ...], Future[bytes | None]]] = deque()
         for band in bands:
@@ -459,12 +474,12 @@ class JobStore:
         self._set_row("uploaded", i, True)
 
     def uploaded(self) -> NDArray[np.bool_]:
-        return np.asarray(self._array("uploaded")[...])
+        return self._rows("uploaded")
 
     def digests(self) -> list[bytes]:
         """Recorded digests: images 0..k-1, then the mask (zeros = not written). One read of
         k + 1 chunks: callers that need several views of them take this list once."""
-        return [bytes(row) for row in np.asarray(self._array("input_digests")[...])]
+        return [bytes(row) for row in self._rows("input_digests")]
 
     def write_mask(self, mask: NDArray[np.bool_]) -> None:
         """Store the mask, band by band; a crash part-way leaves :meth:`mask_state`
@@ -475,12 +490,23 @@ class JobStore:
                 f"mask has shape {mask.shape}, the job's images are {s.height} x {s.width}"
             )
         m = np.ascontiguousarray(mask, dtype=bool)
-        dig = self._array("input_digests")
-        dig[s.k] = np.frombuffer(MASK_WRITING, np.uint8)
-        arr, rows = self.group["mask"], int(self.group["mask"].chunks[0])
+        row = (slice(s.k, s.k + 1),)
+        self._write("input_digests", row, np.frombuffer(MASK_WRITING, np.uint8)[None])
+        rows = int(self._fixed("mask").chunks[0])
         for y in range(0, s.height, rows):
-            arr[y : y + rows] = m[y : y + rows]
-        dig[s.k] = np.frombuffer(array_digest(m), np.uint8)
+            self._write("mask", (slice(y, min(y + rows, s.height)),), m[y : y + rows])
+        self._write("input_digests", row, np.frombuffer(array_digest(m, s.digest), np.uint8)[None])
+
+    def _write(self, name: str, region: tuple[slice, ...], value: NDArray[Any]) -> None:
+        """``array[region] = value`` for an array created with the store: straight to the chunk's
+        file where ``region`` is one whole chunk (:class:`storage.shards.ChunkFiles`, renamed into
+        place: a reader sees the old chunk or the new one), else through zarr."""
+        files = self._chunk_files(name)
+        at = None if files is None else files.chunk_at(region)
+        if files is None or at is None:
+            self._fixed(name)[region] = value
+        else:
+            files.put(at, files.encode(at, value))
 
     @property
     def lights_digest(self) -> str:
@@ -496,21 +522,29 @@ class JobStore:
         if fp != self.source_fingerprint:
             self.group.attrs["source_fingerprint"] = fp
 
+    def digest_row(self, i: int) -> bytes:
+        """The recorded digest ``i`` (images 0..k-1, then the mask; zeros: none)."""
+        return bytes(self._read("input_digests", (slice(i, i + 1),))[0])
+
     def mask_state(self) -> str:
         """ "default" (none given: every pixel), "complete", or "incomplete" (a write was cut short)."""
-        d = bytes(np.asarray(self._array("input_digests")[self.spec.k]))
+        d = self.digest_row(self.spec.k)
         if d == MASK_WRITING:
             return "incomplete"
         return "default" if not any(d) else "complete"
 
     def record_digests(self, digests: Mapping[int, bytes]) -> None:
         """Record images' digests without storing their pixels (a run that keeps the stack in
-        memory): the input identity holds, ``uploaded[i]`` stays False. One write for all (a
-        chunk per image, written together: one at a time cost 4 ms each)."""
+        memory): the input identity holds, ``uploaded[i]`` stays False. A chunk file per image,
+        written directly (:meth:`_set_row`), or through zarr in one write for all."""
         if not digests:
             return
         for i in digests:
             self.check_index(i)
+        if self._small_writer("input_digests") is not None:
+            for i, d in sorted(digests.items()):
+                self._set_row("input_digests", i, np.frombuffer(d, np.uint8))
+            return
         idx = sorted(digests)
         rows = np.stack([np.frombuffer(digests[i], np.uint8) for i in idx])
         self._array("input_digests").set_orthogonal_selection((np.asarray(idx), slice(None)), rows)
@@ -535,7 +569,7 @@ class JobStore:
         return h.hexdigest()
 
     def read_mask(self) -> NDArray[np.bool_]:
-        return np.asarray(self.group["mask"][...])
+        return self._read("mask")
 
     # -- tiles --------------------------------------------------------------------------------
     def tiles(self) -> list[Tile]:
@@ -549,15 +583,14 @@ class JobStore:
         :meth:`write_empty_tile` ever writes there, so it needs no marker and no task. Reads the
         markers of the other tiles only (a chunk each)."""
         p = self.params
-        arr = self._array("done")
         if p.eps is None:
-            return np.zeros(np.asarray(arr.shape), dtype=bool)
+            return np.zeros(np.asarray(self._fixed("done").shape), dtype=bool)
         done = self.masked_per_tile() == 0
         ys, xs = np.nonzero(~done)
         if ys.size == done.size:
-            return np.asarray(arr[...]) == p.token()
+            return self._read("done") == p.token()
         if ys.size:
-            done[ys, xs] = np.asarray(arr.vindex[ys, xs]) == p.token()
+            done[ys, xs] = self._cells("done", ys, xs) == p.token()
         return done
 
     def read_tile(self, t: Tile) -> tuple[NDArray[Any], NDArray[np.bool_]]:
@@ -598,7 +631,7 @@ class JobStore:
         return read
 
     def read_tile_mask(self, t: Tile) -> NDArray[np.bool_]:
-        return np.asarray(self._fixed("mask")[t.y0 : t.y1, t.x0 : t.x1])
+        return self._read("mask", (slice(t.y0, t.y1), slice(t.x0, t.x1)))
 
     def write_empty_tile(self, t: Tile, token: int) -> None:
         """A tile with no masked pixel: every output at its fill value, zero stats, done marker."""
@@ -607,7 +640,7 @@ class JobStore:
     def masked_per_tile(self) -> NDArray[np.int64]:
         """Masked pixels of each tile, on the tile grid ``(ny, nx)``; counted once per mask (this
         store object keeps the counts with the mask's digest, which a new mask changes)."""
-        key = (bytes(np.asarray(self._array("input_digests")[self.spec.k])), self.params.tile)
+        key = (self.digest_row(self.spec.k), self.params.tile)
         if self._counts is not None and self._counts[0] == key:
             return self._counts[1].copy()
         counts = masked_per_tile(self.read_mask(), self.params.tile)
@@ -626,30 +659,89 @@ class JobStore:
             raise ValueError(f"tile result lacks {', '.join(missing)}")
         self._write_outputs(t, arrays, token, stats)
 
+    def _chunk_files(self, name: str, write: bool = True) -> ChunkFiles | None:
+        """The direct reader and writer of whole chunks of array ``name``
+        (:class:`storage.shards.ChunkFiles`), made once; None for an array it does not encode,
+        or for writing to a store opened read-only (zarr refuses the write with its own error)."""
+        if name not in self._files:
+            folder = self.path / GROUP_DIR / PATHS.get(name, name)
+            self._files[name] = ChunkFiles.for_array(folder, self._fixed(name))
+        return None if write and self.group.store.read_only else self._files[name]
+
+    def _read(self, name: str, region: tuple[slice, ...] = ()) -> NDArray[Any]:
+        """``region`` of array ``name`` (one created with the store: see :meth:`_fixed`), read
+        straight from its chunk files (:meth:`storage.shards.ChunkFiles.read_region`), or through
+        zarr for other codecs or a chunk that does not decode."""
+        files = self._chunk_files(name, write=False)
+        got = None if files is None else files.read_region(region)
+        return np.asarray(self._fixed(name)[region or ...]) if got is None else got
+
+    def _cells(
+        self, name: str, ys: NDArray[np.intp] | list[int], xs: NDArray[np.intp] | list[int]
+    ) -> NDArray[Any]:
+        """Tile-grid cells ``(ys[i], xs[i])`` of ``done`` or ``tile_stats`` (a chunk per tile), each
+        with its trailing values: ``(len(ys), ...)``."""
+        a = self._fixed(name)
+        out = np.empty((len(ys), *a.shape[2:]), dtype=np.dtype(a.dtype))
+        for i, (y, x) in enumerate(zip(ys, xs, strict=True)):
+            out[i] = self._read(name, (slice(int(y), int(y) + 1), slice(int(x), int(x) + 1)))[0, 0]
+        return out
+
+    def _rows(self, name: str) -> NDArray[Any]:
+        """The whole of a per-image array of one chunk per row (``uploaded``, ``input_digests``),
+        read straight from its chunk files (through zarr, each of the k + 1 chunks was a round
+        trip of zarr's event loop: 50-100 ms for 96 images); through zarr for other codecs or a
+        chunk that does not decode."""
+        files = self._chunk_files(name, write=False)
+        if files is not None and files.chunk[0] == 1 and files.chunk[1:] == files.shape[1:]:
+            out = np.empty(files.shape, files.dtype)
+            for i in range(files.shape[0]):
+                row = files.read((i, *(0,) * (len(files.shape) - 1)))
+                if row is None:
+                    break
+                out[i] = row[0]
+            else:
+                return out
+        return np.asarray(self._array(name)[...])
+
     def _write_outputs(
         self, t: Tile, arrays: Mapping[str, NDArray[Any]], token: int, stats: tuple[int, int, int]
     ) -> None:
         ys, xs = slice(t.y0, t.y1), slice(t.x0, t.x1)
-        writes = []
+        parts: list[tuple[str, tuple[slice, ...], Any]] = []
         for o in TILE_OUTPUTS:
-            if not o.exists(self.spec.channels):
-                continue
-            a = self._fixed(o.name)
-            value = arrays.get(o.name, a.fill_value)
-            writes.append(
-                a.async_array.setitem((slice(None), ys, xs) if o.per == "image" else (ys, xs), value)
-            )
-        stats_row = np.asarray(stats, dtype=np.int64)
-        writes.append(self._fixed("tile_stats").async_array.setitem((t.ty, t.tx), stats_row))
-        # every chunk of the tile in one pass of Zarr's event loop (one at a time, each write
-        # waited for the loop's round trip), then the done marker, only once they are all on disk
-        sync(_gather(writes))
-        self._fixed("done")[t.ty, t.tx] = token
+            if o.exists(self.spec.channels):
+                region = (slice(None), ys, xs) if o.per == "image" else (ys, xs)
+                parts.append((o.name, region, arrays.get(o.name, self._fixed(o.name).fill_value)))
+        ty, tx = slice(t.ty, t.ty + 1), slice(t.tx, t.tx + 1)
+        parts.append(("tile_stats", (ty, tx), np.asarray(stats, dtype=np.int64).reshape(1, 1, 3)))
+        # each part is one whole chunk of its array (chunks are tile-aligned): encoded and written
+        # here (storage.shards.ChunkFiles), the same files zarr writes; zarr for any other array
+        direct: list[tuple[ChunkFiles, tuple[int, ...], bytes | None]] = []
+        writes = []
+        for name, region, value in parts:
+            files = self._chunk_files(name)
+            coords = None if files is None else files.chunk_at(region)
+            if files is None or coords is None:
+                writes.append(self._fixed(name).async_array.setitem(region, value))
+            else:
+                direct.append((files, coords, files.encode(coords, value)))
+        for files, coords, data in direct:
+            files.put(coords, data)
+        if writes:  # in one pass of zarr's event loop, not a round trip each
+            sync(_gather(writes))
+        # the done marker last, once every chunk of the tile is in place
+        done = self._chunk_files("done")
+        at = None if done is None else done.chunk_at((ty, tx))
+        if done is None or at is None:
+            self._fixed("done")[t.ty, t.tx] = token
+        else:
+            done.put(at, done.encode(at, token))
 
     def tile_done(self, t: Tile) -> bool:
         """Whether tile ``t`` is finished with the current parameters."""
         p = self.params
-        return p.eps is not None and int(self._fixed("done")[t.ty, t.tx]) == p.token()
+        return p.eps is not None and int(self._cells("done", [t.ty], [t.tx])[0]) == p.token()
 
     def progress(self) -> ProgressCounts:
         """Counts over the finished tiles, from the done grid and per-tile stats only."""
@@ -657,9 +749,7 @@ class JobStore:
         done = self.done_grid() & (counts > 0)
         # the stats of finished tiles with masked pixels (the others' are zeros): a chunk each
         ys, xs = np.nonzero(done)
-        cols = np.arange(3)
-        flat = self._array("tile_stats").vindex[np.repeat(ys, 3), np.repeat(xs, 3), np.tile(cols, ys.size)]
-        stats = np.asarray(flat, dtype=np.int64).reshape(-1, 3)
+        stats = self._cells("tile_stats", ys, xs).astype(np.int64).reshape(-1, 3)
         return ProgressCounts(
             tiles_done=int(done.sum()),
             tiles_total=int(np.count_nonzero(counts)),
@@ -682,13 +772,15 @@ class JobStore:
         a look-up (most of the frame, for an object in balanced small tiles)."""
         if name not in OUTPUTS_BY_NAME or name not in self.group:
             raise NotFoundError(f"no output array {name!r}; available: {', '.join(self.output_names())}")
-        a = self.group[name]
         o = OUTPUTS_BY_NAME[name]
+        if o.made == "after":  # made after the run, and again by each re-integration: metadata read now
+            return np.asarray(self.group[name][...])
+        a = self._fixed(name)
         if o.made != "tile":
-            return np.asarray(a[...])
+            return self._read(name)
         ty, tx = np.nonzero(self.masked_per_tile())
         if ty.size == 0:
-            return np.asarray(a[...])
+            return self._read(name)
         T, (H, W) = self.params.tile, (self.spec.height, self.spec.width)
         box = {
             "y": slice(int(ty.min()) * T, min((int(ty.max()) + 1) * T, H)),
@@ -696,9 +788,9 @@ class JobStore:
         }
         region = tuple(box.get(d, slice(0, n)) for d, n in zip(o.dims, a.shape, strict=True))
         if all(r == slice(0, n) for r, n in zip(region, a.shape, strict=True)):
-            return np.asarray(a[...])
+            return self._read(name)
         out = np.full(a.shape, a.fill_value, dtype=a.dtype)
-        out[region] = a[region]
+        out[region] = self._read(name, region)
         return out
 
     def output_names(self) -> list[str]:

@@ -211,6 +211,166 @@ class ChunkWriter:
             raise
 
 
+class ChunkFiles:
+    """Whole chunks of one local Zarr v3 array that is not sharded (codecs ``bytes`` then
+    ``zstd``, as zarr's defaults make them: the outputs, ``done``, ``tile_stats``), encoded as
+    zarr encodes them and written as zarr's LocalStore writes them.
+
+    A finished tile writes one chunk of each output array and of its bookkeeping. Through zarr
+    each is a coroutine on zarr's event loop, a thread hop for the encode and another for the
+    file, and a read of the old chunk first where the tile is at the array's edge: about 8 ms of
+    CPU per tile, twice the files' own cost. Here a chunk is cast to the array's dtype, padded
+    with the fill value at the far edges, tested for "fill value only" as zarr tests it (then
+    zarr removes the chunk's file, and so does this) and compressed by the same numcodecs Zstd;
+    the file is written under a temporary name in its folder and renamed into place, so a reader
+    sees the old chunk or the new one, never a part. No fsync, as zarr.
+    """
+
+    def __init__(self, folder: Path, array: zarr.Array, level: int) -> None:
+        self.folder = Path(folder)
+        self.chunk = tuple(int(n) for n in array.metadata.chunk_grid.chunk_shape)
+        self.shape = tuple(int(n) for n in array.shape)
+        self.dtype = np.dtype(array.dtype)  # zarr casts what it is given to this
+        self.stored = self.dtype.newbyteorder("<")
+        self.fill = np.asarray(array.metadata.fill_value, dtype=self.dtype)
+        # zarr's test of a chunk of fill value only (NDBuffer.all_equal): a float fill of zero
+        # compares bit patterns (a chunk of -0.0 is stored), any other by value, NaN equal to NaN
+        self.bits = np.dtype(f"u{self.dtype.itemsize}") if self.dtype.kind == "f" and self.fill == 0 else None
+        self.keys = array.metadata.chunk_key_encoding
+        self.zstd = Zstd(level=level)
+
+    @classmethod
+    def for_array(cls, folder: Path, array: zarr.Array) -> ChunkFiles | None:
+        """A writer for ``array`` stored in ``folder`` (its local directory), or None when its
+        codecs, chunk keys, data type, order or settings are not the ones this class writes (the
+        caller then writes through zarr)."""
+        meta = array.metadata
+        codecs = tuple(getattr(meta, "codecs", ()))
+        one_byte = np.dtype(array.dtype).itemsize == 1
+        little = (BytesCodec(endian="little"), *([BytesCodec(endian=None)] if one_byte else []))
+        if (
+            len(codecs) != 2
+            or codecs[0] not in little
+            or not isinstance(codecs[1], ZstdCodec)
+            or codecs[1].checksum
+            or not isinstance(meta.chunk_key_encoding, DefaultChunkKeyEncoding)
+            or np.dtype(array.dtype).kind not in "buif"
+            or array.config.write_empty_chunks
+            or array.order != "C"
+        ):
+            return None
+        return cls(folder, array, int(codecs[1].level))
+
+    def chunk_at(self, region: tuple[slice, ...]) -> tuple[int, ...] | None:
+        """The grid coordinates of the chunk that ``region`` (a slice per dimension, missing ones
+        whole) covers exactly, or None when it is not exactly one chunk."""
+        region = (*region, *(slice(None),) * (len(self.shape) - len(region)))
+        coords = []
+        for r, c, n in zip(region, self.chunk, self.shape, strict=True):
+            a, b, step = r.indices(n)
+            if step != 1 or a % c or b != min(a + c, n):
+                return None
+            coords.append(a // c)
+        return tuple(coords)
+
+    def encode(self, coords: tuple[int, ...], value: Any) -> bytes | None:
+        """The file of chunk ``coords`` holding ``value`` (its values inside the array, or a
+        scalar for all of them), as zarr writes it; None when every value is the fill value
+        (zarr stores no file then)."""
+        inside = tuple(min(c, n - i * c) for i, c, n in zip(coords, self.chunk, self.shape, strict=True))
+        # a scalar is converted as zarr converts it (an int out of the dtype's range raises)
+        v = np.asarray(value, dtype=self.dtype) if np.isscalar(value) else np.asarray(value)
+        if inside == self.chunk and v.shape == self.chunk:
+            chunk = v.astype(self.dtype, copy=False)
+        else:  # a scalar, or at the array's far edge: zarr encodes whole chunks, padded with the fill
+            chunk = np.full(self.chunk, self.fill, dtype=self.dtype)
+            chunk[tuple(slice(0, n) for n in inside)] = v
+        if self.bits is not None:
+            empty = not (chunk.view(self.bits) != self.fill.view(self.bits)).any()
+        else:
+            empty = np.array_equal(
+                chunk, np.broadcast_to(self.fill, chunk.shape), equal_nan=self.dtype.kind == "f"
+            )
+        if empty:
+            return None
+        return bytes(self.zstd.encode(np.ascontiguousarray(chunk, dtype=self.stored)))
+
+    def read(self, coords: tuple[int, ...]) -> NDArray[Any] | None:
+        """Chunk ``coords``'s values (the whole chunk) as zarr reads them: the fill value where it
+        has no file; None where its file does not decode (zarr should read it, and raise)."""
+        got = self._load(coords)
+        if got is False:
+            return None
+        return np.full(self.chunk, self.fill, dtype=self.dtype) if got is None else got
+
+    def _load(self, coords: tuple[int, ...]) -> NDArray[Any] | bool | None:
+        """Chunk ``coords``'s values; None: no file (the fill value); False: it does not decode."""
+        path = self.folder / self.keys.encode_chunk_key(coords)
+        try:
+            with open(path, "rb") as f:
+                data = f.read()
+        except FileNotFoundError:
+            return None
+        try:
+            raw = np.frombuffer(self.zstd.decode(data), self.stored)
+            return raw.astype(self.dtype, copy=False).reshape(self.chunk)
+        except (RuntimeError, ValueError):  # numcodecs' zstd errors are RuntimeErrors
+            return False
+
+    def read_region(self, region: tuple[slice, ...]) -> NDArray[Any] | None:
+        """The values of ``region`` (a slice per dimension, steps of 1; dimensions left out are
+        read whole) as zarr reads them, or None where zarr should read them instead (a slice with
+        a step, a chunk file that does not decode). Through zarr a read is a round trip of its
+        event loop and a thread hop per chunk: 3-15 ms for a tile's mask or the whole mask."""
+        region = (*region, *(slice(None),) * (len(self.shape) - len(region)))
+        if len(region) != len(self.shape) or not all(isinstance(r, slice) for r in region):
+            return None
+        idx = [r.indices(n) for r, n in zip(region, self.shape, strict=True)]
+        if any(step != 1 for _, _, step in idx):
+            return None
+        bounds = [(a, max(a, b)) for a, b, _ in idx]
+        out = np.empty([b - a for a, b in bounds], dtype=self.dtype)
+        if out.size == 0:
+            return out
+        spans = [range(a // c, (b - 1) // c + 1) for (a, b), c in zip(bounds, self.chunk, strict=True)]
+        for cc in itertools.product(*spans):
+            src, dst = [], []
+            for c, n, (a, b) in zip(cc, self.chunk, bounds, strict=True):
+                lo, hi = max(a, c * n), min(b, (c + 1) * n)
+                src.append(slice(lo - c * n, hi - c * n))
+                dst.append(slice(lo - a, hi - a))
+            got = self._load(cc)
+            if got is False:
+                return None
+            out[tuple(dst)] = self.fill if got is None else got[tuple(src)]
+        return out
+
+    def put(self, coords: tuple[int, ...], data: bytes | None) -> None:
+        """Write chunk ``coords``'s file of :meth:`encode`'s ``data`` (None: remove it)."""
+        path = self.folder / self.keys.encode_chunk_key(coords)
+        if data is None:
+            path.unlink(missing_ok=True)
+            return
+        tmp = path.with_name(f".{path.name}.{os.getpid()}-{threading.get_ident()}.partial")
+        flags = os.O_WRONLY | os.O_CREAT | os.O_TRUNC | getattr(os, "O_CLOEXEC", 0)
+        try:
+            fd = os.open(tmp, flags, 0o666)
+        except FileNotFoundError:  # the chunk's first file in its folder (nested chunk keys)
+            path.parent.mkdir(parents=True, exist_ok=True)
+            fd = os.open(tmp, flags, 0o666)
+        try:
+            try:
+                view = memoryview(data)
+                while view:
+                    view = view[os.write(fd, view) :]
+            finally:
+                os.close(fd)
+            os.replace(tmp, path)
+        except BaseException:
+            tmp.unlink(missing_ok=True)
+            raise
+
+
 class ShardReader:
     """Reads a region of one local Zarr v3 array straight from its shard files: what zarr-python
     reads, without its coroutine and thread hop per inner chunk (about 0.2 ms each, as for

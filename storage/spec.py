@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import NDArray
 
+from maxfs.storage.digests import DIGEST, DIGESTS
 from maxfs.storage.errors import InvalidInputError
 from maxfs.storage.observations import ObservationModel
 from maxfs.storage.options import DTYPES, check_lights
@@ -40,6 +41,9 @@ class JobSpec:
     dtype: str
     lights: NDArray[np.float64]
     intensities: NDArray[np.float64] | None = None
+    #: the hash of the store's input digests (:mod:`storage.digests`): a new store's is
+    #: :data:`~storage.digests.DIGEST`, an opened store's the one it records
+    digest: str = DIGEST
 
     @classmethod
     def of(cls, ds: Dataset) -> JobSpec:
@@ -68,7 +72,11 @@ class JobSpec:
                     "channel, all rows the same length"
                 ) from None
         obs = ObservationModel.for_input(np.dtype(self.dtype), self.k, self.channels, inten)
-        return JobSpec(self.k, self.height, self.width, self.channels, self.dtype, lights, obs.intensities)
+        if self.digest not in DIGESTS:
+            raise InvalidInputError(f"unknown input digest {self.digest!r}; one of {', '.join(DIGESTS)}")
+        return JobSpec(
+            self.k, self.height, self.width, self.channels, self.dtype, lights, obs.intensities, self.digest
+        )
 
     @property
     def image_shape(self) -> tuple[int, ...]:

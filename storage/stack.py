@@ -19,7 +19,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from maxfs.storage.datasets import Dataset
-from maxfs.storage.digests import array_digest
+from maxfs.storage.digests import DIGEST, array_digest
 from maxfs.storage.tiles import Tile
 
 
@@ -63,9 +63,11 @@ class HeldStack:
 
 class StackReader:
     """Decode every image of ``ds`` on ``threads`` threads into a :class:`HeldStack` over the
-    mask's box, with each whole image's digest (:func:`storage.digests.array_digest`)."""
+    mask's box, with each whole image's digest (:func:`storage.digests.array_digest` of
+    ``digest``: a new store's hash unless the store is known to record another)."""
 
-    def __init__(self, ds: Dataset, threads: int) -> None:
+    def __init__(self, ds: Dataset, threads: int, digest: str = DIGEST) -> None:
+        self.digest = digest
         self.box = mask_box(ds.mask, ds.height, ds.width)
         y0, y1, x0, x1 = self.box
         shape = (y1 - y0, x1 - x0) if ds.channels is None else (y1 - y0, x1 - x0, ds.channels)
@@ -79,7 +81,7 @@ class StackReader:
         img = self._ds.read(i)
         y0, y1, x0, x1 = self.box
         self.images[i] = img[y0:y1, x0:x1]
-        self.digests[i] = array_digest(img)
+        self.digests[i] = array_digest(img, self.digest)
 
     def result(self) -> tuple[HeldStack, list[bytes]]:
         """The held stack and the digests, once every image is decoded (the first error is raised)."""

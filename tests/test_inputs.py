@@ -110,4 +110,4 @@ def test_cli_run_with_images_on_a_tiff_stack(tmp_path: Path) -> None:
     # an in-process run keeps the stack in memory and records each image's digest
     from maxfs.storage.layout import array_digest
 
-    assert store.digests()[6] == array_digest(images[8])
+    assert store.digests()[6] == array_digest(images[8], store.spec.digest)

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from maxfs.storage.datasets import write_npy_folder
-from maxfs.storage.digests import array_digest
+from maxfs.storage.digests import DIGEST, array_digest
 from maxfs.storage.inputs import load_folder
 from maxfs.storage.stack import HeldStack, StackReader, mask_box
 
@@ -69,7 +69,7 @@ def test_only_the_masks_box_is_held_and_digests_are_of_whole_images(tmp_path: Pa
     held, digests = _read(tmp_path, images, mask)
     assert held.box == (10, 25, 20, 46) == mask_box(mask, H, W)
     assert held.data.shape == (K, 15, 26, 3)  # 15 x 26 of 40 x 56 pixels
-    assert digests == [array_digest(images[i]) for i in range(K)]
+    assert digests == [array_digest(images[i], DIGEST) for i in range(K)]
 
 
 def test_without_a_mask_the_whole_frame_is_held(tmp_path: Path) -> None:

@@ -95,7 +95,7 @@ class Uploads:
                 return
             # the digest is made as the body arrives (the body is the image's little-endian
             # bytes, what the digest reads), not from a second pass over the stored bands
-            hasher = ArrayHasher(spec.image_shape, spec.dtype)
+            hasher = ArrayHasher(spec.image_shape, spec.dtype, spec.digest)
             part = await stage_body(
                 request,
                 self.m.job_dir(job_id),
@@ -183,7 +183,7 @@ class Uploads:
                                     prefix=f"{TEMP_PREFIX}upload-{index}-", suffix=".part", dir=folder
                                 )
                                 part, f = Path(name), os.fdopen(fd, "wb", buffering=0)
-                            hasher, got = ArrayHasher(spec.image_shape, spec.dtype), 0
+                            hasher, got = ArrayHasher(spec.image_shape, spec.dtype, spec.digest), 0
                         piece, view = view[: size - got], view[size - got :]
                         f.write(piece)
                         hasher.h.update(piece)

@@ -125,7 +125,7 @@ def store_images(
 ) -> None:
     """Decode images ``indices`` of ``ds`` and store them (:meth:`JobStore.write_image`: whole
     shards, digests made as they are written) on ``threads`` threads: each image is read once and
-    reaches the store once, and the decoders, zstd, BLAKE2b and file writes release the GIL, so
+    reaches the store once, and the decoders, zstd, the digests and file writes release the GIL, so
     the copy runs at about the rate of decoding. The first error is raised, and images not begun
     are skipped, as they are once ``stop`` is set."""
 
@@ -185,7 +185,7 @@ def _check_same_inputs(store: JobStore, ds: Dataset, spec: JobSpec, out: Path, c
             if same_files and uploaded[i]:
                 continue
             img = ds.read(i)
-            d = array_digest(img)
+            d = array_digest(img, s.digest)
             if known[i] and d != stored[i]:
                 raise differ(f"the images ({ds.label(i)} first)")
             if copy_images and not uploaded[i]:
@@ -199,7 +199,7 @@ def _check_same_inputs(store: JobStore, ds: Dataset, spec: JobSpec, out: Path, c
             raise differ("the masks")
     elif state == "incomplete":
         store.write_mask(ds.mask)
-    elif state == "default" or array_digest(np.ascontiguousarray(ds.mask, dtype=bool)) != stored[s.k]:
+    elif state == "default" or array_digest(np.ascontiguousarray(ds.mask, bool), s.digest) != stored[s.k]:
         raise differ("the masks")
 
 
@@ -620,7 +620,10 @@ def read_stack(ds: Dataset, store: JobStore, threads: int, reader: StackReader |
     ``threads`` threads (PNG/TIFF decoders release the GIL), or taken from ``reader`` (started
     earlier, :class:`storage.stack.StackReader`); each image's digest is recorded in the store
     where it is not yet known, in one write."""
-    held, digests = (reader or StackReader(ds, threads)).result()
+    if reader is not None and reader.digest != store.spec.digest:
+        reader.cancel()  # started before the store was open, with a new store's hash: not this one's
+        reader = None
+    held, digests = (reader or StackReader(ds, threads, store.spec.digest)).result()
     known = store.known_images()
     store.record_digests({i: d for i, d in enumerate(digests) if not known[i]})
     return held
