@@ -98,13 +98,14 @@ class ObservationModel:
         return cls(inten, sensor_max, channels, bool(dequantize) and sensor_max is not None)
 
     def prepare(
-        self, raw: NDArray
+        self, raw: NDArray, pixels: NDArray[np.intp] | None = None
     ) -> tuple[NDArray[np.float64], NDArray[np.float64] | None, NDArray[np.bool_]]:
         """Raw ``(k, ...spatial[, C])`` to ``(P, k)`` grey, ``(P, k, C)`` colour, ``(P, k)`` saturated.
 
         Grey is the mean of the channels after division by the intensities
         ((R + G + B) / 3 as in the paper). An observation is saturated when any of
-        its channels is at the sensor maximum.
+        its channels is at the sensor maximum. ``pixels``: only these (flat, raster-order)
+        spatial positions, in this order, as ``prepare(raw.reshape(k, -1[, C])[:, pixels])``.
         """
         k = raw.shape[0]
         C = self.channels or 1
@@ -112,7 +113,7 @@ class ObservationModel:
         # pixel-major first, in the raw dtype (2 bytes a value, not 8), one channel group at a
         # time: every later pass is then contiguous and grey, rgb and saturated come out in
         # their final (P, k) layout without a float64 transpose (same values, same arithmetic)
-        v = _pixel_major(vals)
+        v = _pixel_major(vals, pixels)
         f = v.astype(np.float64)  # always a copy: ``v`` may be ``raw`` itself (one pixel)
         if self.dequantize:
             # + 0.5 where v > 0 (adding 0.0 elsewhere, as before, changed nothing)
@@ -133,15 +134,18 @@ class ObservationModel:
         return grey, rgb, saturated
 
 
-def _pixel_major(vals: NDArray) -> NDArray:
-    """``(k, P, C)`` as a C-contiguous ``(P, k, C)`` array of the same dtype. Several channels
-    move as one opaque item (a void view of the C values): numpy's copy is then one
-    element per observation instead of C, about 2x faster for RGB."""
+def _pixel_major(vals: NDArray, pixels: NDArray[np.intp] | None = None) -> NDArray:
+    """``(k, P, C)`` as a C-contiguous ``(P, k, C)`` array of the same dtype, of the positions
+    ``pixels`` only if given (gathered and transposed in one copy). Several channels move as
+    one opaque item (a void view of the C values): numpy's copy is then one element per
+    observation instead of C, about 2x faster for RGB."""
     C = vals.shape[2]
     if C > 1 and vals.flags.c_contiguous:
-        items = vals.view(np.dtype((np.void, vals.dtype.itemsize * C)))  # (k, P, 1)
-        return np.ascontiguousarray(items.transpose(1, 0, 2)).view(vals.dtype)
-    return np.ascontiguousarray(vals.transpose(1, 0, 2))
+        items = vals.view(np.dtype((np.void, vals.dtype.itemsize * C))).transpose(1, 0, 2)  # (P, k, 1)
+        out = items[pixels] if pixels is not None else np.ascontiguousarray(items)
+        return out.view(vals.dtype)
+    t = vals.transpose(1, 0, 2)
+    return t[pixels] if pixels is not None else np.ascontiguousarray(t)
 
 
 def _channel_mean(f: NDArray[np.float64]) -> NDArray[np.float64]:

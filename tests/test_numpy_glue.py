@@ -61,13 +61,22 @@ def test_prepare_matches_reference(dtype, channels) -> None:
                 before = layout.copy()
                 got = obs.prepare(layout)
                 np.testing.assert_array_equal(layout, before)  # the input is not written
-                for a, b in zip(got, _prepare_reference(obs, layout), strict=True):
-                    if b is None:
-                        assert a is None
-                        continue
-                    assert a.shape == b.shape and a.dtype == b.dtype
-                    assert a.tobytes() == np.ascontiguousarray(b).tobytes()  # bits, NaN included
-                    assert a.flags.c_contiguous
+                _assert_prepared(got, _prepare_reference(obs, layout))
+                # some positions only, in a given order (a masked tile's pixels)
+                flat = layout.reshape(k, -1, *layout.shape[1 + len(spatial) :])
+                pixels = rng.permutation(flat.shape[1])[: max(1, flat.shape[1] // 2)]
+                _assert_prepared(obs.prepare(layout, pixels), _prepare_reference(obs, flat[:, pixels]))
+                np.testing.assert_array_equal(layout, before)
+
+
+def _assert_prepared(got, ref) -> None:
+    for a, b in zip(got, ref, strict=True):
+        if b is None:
+            assert a is None
+            continue
+        assert a.shape == b.shape and a.dtype == b.dtype
+        assert a.tobytes() == np.ascontiguousarray(b).tobytes()  # bits, NaN included
+        assert a.flags.c_contiguous
 
 
 def _slabs_reference(i: np.ndarray, th: Thresholds):

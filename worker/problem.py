@@ -184,8 +184,10 @@ def usable(images: NDArray[np.floating], th: Thresholds) -> NDArray[np.bool_]:
     ``images`` has the image axis first: ``(k, ...)``.
     """
     sat = np.minimum(th.saturation, MAX_INTENSITY).reshape((-1,) + (1,) * (images.ndim - 1))
+    # no isfinite pass: NaN fails both comparisons, -inf the first, +inf the second (``sat``
+    # is at most MAX_INTENSITY, or NaN, which no value is below)
     with np.errstate(invalid="ignore"):
-        return np.isfinite(images) & (images > th.shadow) & (images < sat)
+        return (images > th.shadow) & (images < sat)
 
 
 def slabs(
@@ -252,20 +254,25 @@ def candidates(
     th: Thresholds,
     outlier: NDArray[np.bool_] | None = None,
     active: NDArray[np.bool_] | None = None,
+    *,
+    use: NDArray[np.bool_] | None = None,
 ) -> NDArray[np.bool_]:
     """``(P, k)`` observations that may be inliers: :func:`usable`, not ``outlier``, of an
     ``active`` pixel, and not among the brightest ``drop_bright`` share of the pixel's
     candidates (``floor(drop_bright * m)`` of ``m``, never leaving fewer than 3; ties go
     to the lower image index). With ``shadow_slabs`` the :func:`shadows` are candidates too.
+    ``use``: :func:`usable` of these intensities, when the caller has it already.
     """
     i = np.asarray(intensities, dtype=np.float64)
-    valid = usable(i.T, th).T
+    valid = usable(i.T, th).T if use is None else use.copy()
     if th.shadow_slabs:
         valid |= shadows(i, th)
     if outlier is not None:
         valid &= ~np.asarray(outlier, dtype=bool)
     if active is not None:
-        valid &= np.asarray(active, dtype=bool)[:, None]
+        act = np.asarray(active, dtype=bool)
+        if not act.all():  # (every pixel active: the solver's usual batch)
+            valid &= act[:, None]
     return drop_brightest(i, valid, th.drop_bright)
 
 

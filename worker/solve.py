@@ -113,11 +113,12 @@ def solve_pixels(
     P = I.shape[0]
     act = np.ones(P, dtype=bool) if active is None else np.asarray(active, dtype=bool)
     S = shading(I, th)  # what L.n should match: I, or I^(1/g) under a response
-    found = impl.search(Batch(I, S, L, th, act, outlier, max_nodes, milp_time_limit))
+    use = usable(I.T, th).T if impl.max_fs else None  # once, for the search and the refit
+    found = impl.search(Batch(I, S, L, th, act, outlier, max_nodes, milp_time_limit, use))
     point, inl, optimal, nodes, source = found.point, found.inliers, found.optimal, found.nodes, found.source
     # the refit is least squares on the lit inliers: a shadow inlier says L.n <= s, not L.n = I
     # (it would pull n toward the shadow's value), so it is a row only where the fit breaks it
-    lit = inl & usable(I.T, th).T if impl.max_fs else inl
+    lit = inl & use if use is not None else inl
     n = refit(S, lit, L, MAX_LIGHT_CONDITION)  # a badly conditioned inlier set determines no normal
     if impl.max_fs and th.shadow_slabs:
         n = censored_refit(S, lit, inl & ~lit, L, n)
@@ -335,9 +336,8 @@ def solve_tile(
         # nothing to solve (a tile outside the mask): every pixel is the inactive fill
         r = _scatter(None, idx, h * w, obs, L, th, solver, k, raw.shape[3] if raw.ndim == 4 else None)
     else:
-        if idx is not None and idx.size < h * w:
-            flat = flat[:, idx]
-        grey, rgb, saturated = obs.prepare(flat)
+        part = idx is not None and idx.size < h * w
+        grey, rgb, saturated = obs.prepare(flat, idx if part else None)  # gathered as it is transposed
         r = solve_pixels(
             grey,
             L,
@@ -348,7 +348,7 @@ def solve_tile(
             max_nodes=max_nodes,
             milp_time_limit=milp_time_limit,
         )
-        if idx is not None and idx.size < h * w:
+        if part:
             r = _scatter(r, idx, h * w, obs, L, th, solver)
     return TileResult(
         normal=r.normal.reshape(h, w, 3),

@@ -34,6 +34,7 @@ class Batch:
     outlier: NDArray[np.bool_] | None  # (P, k) observations known to be unusable
     max_nodes: int
     milp_time_limit: float
+    usable: NDArray[np.bool_] | None = None  # (P, k) :func:`~worker.problem.usable` of I, if known
 
 
 @dataclass(frozen=True)
@@ -99,8 +100,9 @@ def _milp_rows(S, lo, hi, valid, L, b: Batch):
 def _max_fs(rows_search: RowSearch) -> Callable[[Batch], Search]:
     def search(b: Batch) -> Search:
         P, k = b.I.shape
-        valid = candidates(b.I, b.th, b.outlier, b.active)
-        lit = valid & usable(b.I.T, b.th).T  # two-sided slabs; the rest are one-sided shadows
+        use = usable(b.I.T, b.th).T if b.usable is None else b.usable
+        valid = candidates(b.I, b.th, b.outlier, b.active, use=use)
+        lit = valid & use  # two-sided slabs; the rest are one-sided shadows
         bounds = None  # every pixel's slabs, when the shadow test needs them anyway
         if b.th.mirror_deg > 0 or b.th.shadow_slabs:
             n0 = first_pass(b.S, lit, b.L)
