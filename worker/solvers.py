@@ -129,8 +129,13 @@ def _max_fs(rows_search: RowSearch) -> Callable[[Batch], Search]:
                 lo, hi = bounds if rows.size == P else (bounds[0][rows], bounds[1][rows])
             else:
                 lo, hi = slabs(b.I[rows], b.th)
-            pt, il, nd, cert = rows_search(b.S[rows], lo, hi, valid[rows], b.L, b)
-            point[rows], inl[rows], optimal[rows], nodes[rows] = pt, il, cert, nd
+            if rows.size == P:  # every pixel (a tile inside the object): no copies (searches read them)
+                pt, il, nd, cert = rows_search(b.S, lo, hi, valid, b.L, b)
+                point, inl = np.asarray(pt, np.float64), np.asarray(il, bool)
+                optimal, nodes = np.asarray(cert, bool), np.asarray(nd, np.int64)
+            else:
+                pt, il, nd, cert = rows_search(b.S[rows], lo, hi, valid[rows], b.L, b)
+                point[rows], inl[rows], optimal[rows], nodes[rows] = pt, il, cert, nd
             source[rows] = np.where(cert, Source.CERTIFIED, Source.BEST_FOUND)
         return Search(point, inl, optimal, nodes, source)
 
