@@ -330,14 +330,13 @@ def solve_tile(
     values :func:`solve_pixels` gives an inactive pixel.
     """
     k, h, w = raw.shape[:3]
-    flat = raw.reshape(k, h * w, *raw.shape[3:])
     idx = None if mask is None else np.flatnonzero(mask.reshape(h * w))
     if idx is not None and idx.size == 0:
         # nothing to solve (a tile outside the mask): every pixel is the inactive fill
         r = _scatter(None, idx, h * w, obs, L, th, solver, k, raw.shape[3] if raw.ndim == 4 else None)
     else:
         part = idx is not None and idx.size < h * w
-        grey, rgb, saturated = obs.prepare(flat, idx if part else None)  # gathered as it is transposed
+        grey, rgb, saturated = obs.prepare(raw, idx if part else None)  # gathered as it is transposed
         r = solve_pixels(
             grey,
             L,
