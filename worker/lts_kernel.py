@@ -183,7 +183,7 @@ def response_medians(I, sel, L, g, rounds):  # pragma: no cover - compiled
         for i in range(k):
             if sel[p, i]:
                 pred = max(n[0] * L[i, 0] + n[1] * L[i, 1] + n[2] * L[i, 2], 0.0)
-                if g != 1.0 and pred > 0.0:  # 0^g is 0 (g > 0): no power for a light behind
+                if g != 1.0:
                     pred = pred**g
                 v = abs(I[p, i] - pred)
                 if v < np.inf:
