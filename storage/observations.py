@@ -98,27 +98,73 @@ class ObservationModel:
         return cls(inten, sensor_max, channels, bool(dequantize) and sensor_max is not None)
 
     def prepare(
-        self, raw: NDArray
+        self, raw: NDArray, pixels: NDArray[np.intp] | None = None
     ) -> tuple[NDArray[np.float64], NDArray[np.float64] | None, NDArray[np.bool_]]:
         """Raw ``(k, ...spatial[, C])`` to ``(P, k)`` grey, ``(P, k, C)`` colour, ``(P, k)`` saturated.
 
         Grey is the mean of the channels after division by the intensities
         ((R + G + B) / 3 as in the paper). An observation is saturated when any of
-        its channels is at the sensor maximum.
+        its channels is at the sensor maximum. ``pixels``: only these (flat, raster-order)
+        spatial positions, in this order, as ``prepare(raw.reshape(k, -1[, C])[:, pixels])``.
         """
-        k = raw.shape[0]
-        if self.channels is None:
-            vals = raw.reshape(k, -1, 1)
-        else:
-            vals = raw.reshape(k, -1, self.channels)
-        f = vals.astype(np.float64)
+        C = self.channels or 1
+        # pixel-major first, in the raw dtype (2 bytes a value, not 8), one channel group at a
+        # time: every later pass is then contiguous and grey, rgb and saturated come out in
+        # their final (P, k) layout without a float64 transpose (same values, same arithmetic)
+        v = _pixel_major(raw if self.channels is not None else raw[..., None], pixels)
+        f = v.astype(np.float64)  # always a copy: ``v`` may be ``raw`` itself (one pixel)
         if self.dequantize:
-            f += np.where(vals > 0, 0.5, 0.0)
-        f /= self.intensities[:, None, :]
-        grey = f.mean(axis=2).T
-        rgb = np.ascontiguousarray(np.moveaxis(f, 0, 1)) if self.channels is not None else None
+            # + 0.5 where v > 0 (adding 0.0 elsewhere, as before, changed nothing)
+            np.add(f, 0.5, out=f, where=v > 0)
+        f /= self.intensities[None, :, :]
+        # grey input: the one channel itself (a view; x / 1 is x); colour: grey is a new array
+        grey = f.reshape(f.shape[:2]) if self.channels is None else _channel_mean(f)
+        if self.sensor_max is None:
+            # numpy's mean sums from +0.0, so it never returned -0.0; only float input has any
+            grey += 0.0
+        rgb = f if self.channels is not None else None
         if self.sensor_max is None:
             saturated = np.zeros(grey.shape, dtype=bool)
         else:
-            saturated = (vals >= self.sensor_max).any(axis=2).T
-        return np.ascontiguousarray(grey), rgb, saturated
+            saturated = v[..., 0] >= self.sensor_max
+            for c in range(1, C):
+                saturated |= v[..., c] >= self.sensor_max
+        return grey, rgb, saturated
+
+
+def _pixel_major(vals: NDArray, pixels: NDArray[np.intp] | None = None) -> NDArray:
+    """``(k, ...spatial, C)`` (any strides) as a C-contiguous ``(P, k, C)`` array of the same
+    dtype, of the flat spatial positions ``pixels`` only if given: gathered and transposed in
+    one copy, from a tile's view of the stack as it is (no copy of the whole tile first).
+    Several channels move as one opaque item (a void view of the C values, where they are
+    adjacent): numpy's copy is then one element per observation instead of C, 2x faster for RGB."""
+    k, spatial, C = vals.shape[0], vals.shape[1:-1], vals.shape[-1]
+    items = vals
+    if C > 1 and vals.strides[-1] == vals.itemsize:
+        try:
+            items = vals.view(np.dtype((np.void, vals.itemsize * C)))  # (k, ...spatial, 1)
+        except ValueError:  # a layout numpy will not reinterpret: value by value, as numbers
+            items = vals
+    t = np.moveaxis(items, 0, -2)  # (...spatial, k, 1 or C)
+    if pixels is None:
+        out = np.ascontiguousarray(t).reshape(-1, k, t.shape[-1])
+    else:
+        out = t[np.unravel_index(pixels, spatial)] if len(spatial) > 1 else t[pixels]
+    return out.view(vals.dtype) if items is not vals else out
+
+
+def _channel_mean(f: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``f.mean(axis=2)`` of ``(P, k, C)`` bit for bit but for the sign of a zero (numpy's sum starts
+    from +0.0; the caller adds it where a -0.0 can occur): numpy reduces a short last axis (fewer
+    than 8, its pairwise sum's block) left to right, then divides by C; spelled out, the sums run
+    on whole (P, k) planes instead of a 3-long inner loop per value (4x faster for RGB)."""
+    C = f.shape[2]
+    if C == 1:
+        return f[..., 0].copy()  # x / 1 is x
+    if C >= 8:
+        return f.mean(axis=2)
+    grey = f[..., 0] + f[..., 1]
+    for c in range(2, C):
+        grey += f[..., c]
+    grey /= C
+    return grey

@@ -70,3 +70,29 @@ def test_lts_fit_compiled_round_is_bit_identical(case, monkeypatch):
     monkeypatch.setattr(noise, "_compiled_keep", lambda: None)
     ref = noise.lts_fit(I, sel, L)
     assert np.array_equal(got, ref, equal_nan=True)
+
+
+@pytest.mark.parametrize("case", list(_cases()), ids=lambda c: c[0])
+@pytest.mark.parametrize("g", [1.0, 0.6, 1.7])
+def test_response_medians_read_only_selected_values(case, g):
+    """The kernel raises only the selected observations to 1/g: what the others hold (here
+    NaN, inf or huge) changes no bit of any pixel's median."""
+    _, I, sel, L = case
+    junk = I.copy()
+    junk[~sel] = np.resize([np.nan, np.inf, 1e300, -5.0], int((~sel).sum()))
+    a, b = response_medians(I, sel, L, g, 3), response_medians(junk, sel, L, g, 3)
+    assert a.tobytes() == b.tobytes()
+
+
+def test_bin_order_parts_are_the_stable_sorts():
+    """noise.bin_order's parts hold the same observations as a stable argsort's, ties at the
+    boundaries included, so the estimate's per-bin medians are unchanged."""
+    rng = np.random.default_rng(3)
+    for t in range(400):
+        n, bins = int(rng.integers(1, 2000)), int(rng.integers(1, 14))
+        top = int(rng.integers(1, 40)) if t % 3 else 10**9  # many ties, or almost none
+        x = rng.integers(0, top, n) / rng.uniform(0.5, 2.0)
+        ref = np.array_split(np.argsort(x, kind="stable"), bins)
+        got = np.array_split(noise.bin_order(x, bins), bins)
+        for a, b in zip(ref, got, strict=True):
+            np.testing.assert_array_equal(np.sort(a), np.sort(b))

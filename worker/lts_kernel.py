@@ -168,12 +168,16 @@ def response_medians(I, sel, L, g, rounds):  # pragma: no cover - compiled
     inv = 1.0 / g
     for p in range(P):
         Ip = I[p]
+        sp = sel[p]
         if g == 1.0:  # (a branch per row, not per value: half the time of this loop)
             S[:] = Ip
         else:
+            # the power only where the fit reads it (the selected observations): it is most
+            # of a candidate g's cost, and a pixel's unselected values are never read
             for i in range(k):
-                S[i] = Ip[i] ** inv
-        if not _lts_row(S, sel[p], L, rounds, keep, r, buf, tmp, n):
+                if sp[i]:
+                    S[i] = Ip[i] ** inv
+        if not _lts_row(S, sp, L, rounds, keep, r, buf, tmp, n):
             continue
         cnt = 0
         for i in range(k):

@@ -37,6 +37,8 @@ def first_pass(S: NDArray[np.float64], lit: NDArray[np.bool_], L: NDArray[np.flo
     """``(P, 3)`` least-trimmed-squares ``n`` over the lit candidates; NaN where undetermined."""
     n0 = np.full((S.shape[0], 3), np.nan)
     rows = np.flatnonzero(lit.sum(axis=1) >= 3)
+    if rows.size == S.shape[0]:  # every pixel: the same fit without copying the batch
+        return lts_fit(S, lit, L)
     if rows.size:
         n0[rows] = lts_fit(S[rows], lit[rows], L)
     return n0
@@ -70,9 +72,10 @@ def near_mirror(
     rows, n0, rho = rows[ok], n0[ok], rho[ok]
     if rows.size == 0:
         return out
-    res = S[rows] - n0 @ L.T
+    whole = rows.size == P  # every pixel: no row copies of S and lit
+    res = (S if whole else S[rows]) - n0 @ L.T
     close = (n0 / rho[:, None]) @ half_vectors(L).T > np.cos(np.radians(mirror_deg))
-    cone = lit[rows] & close
+    cone = (lit if whole else lit[rows]) & close
     # a lobe first: the pixel's near-mirror images must be brighter than the first pass on
     # average, beyond what noise gives (one-sided z-test of their mean excess at 2 sigma of the
     # mean); a Lambertian pixel's images scatter around it and keep every image
@@ -87,5 +90,7 @@ def near_mirror(
         r = np.where(cand[over], res[over], -np.inf)
         rank = np.argsort(np.argsort(-r, axis=1, kind="stable"), axis=1, kind="stable")
         cand[over] &= rank < cap[over, None]
+    if whole:
+        return cand
     out[rows] = cand
     return out

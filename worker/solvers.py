@@ -34,6 +34,7 @@ class Batch:
     outlier: NDArray[np.bool_] | None  # (P, k) observations known to be unusable
     max_nodes: int
     milp_time_limit: float
+    usable: NDArray[np.bool_] | None = None  # (P, k) :func:`~worker.problem.usable` of I, if known
 
 
 @dataclass(frozen=True)
@@ -99,16 +100,18 @@ def _milp_rows(S, lo, hi, valid, L, b: Batch):
 def _max_fs(rows_search: RowSearch) -> Callable[[Batch], Search]:
     def search(b: Batch) -> Search:
         P, k = b.I.shape
-        valid = candidates(b.I, b.th, b.outlier, b.active)
-        lit = valid & usable(b.I.T, b.th).T  # two-sided slabs; the rest are one-sided shadows
+        use = usable(b.I.T, b.th).T if b.usable is None else b.usable
+        valid = candidates(b.I, b.th, b.outlier, b.active, use=use)
+        lit = valid & use  # two-sided slabs; the rest are one-sided shadows
+        bounds = None  # every pixel's slabs, when the shadow test needs them anyway
         if b.th.mirror_deg > 0 or b.th.shadow_slabs:
             n0 = first_pass(b.S, lit, b.L)
             if b.th.shadow_slabs:
                 # a shadow is a one-sided slab only where the first pass agrees the light is
                 # behind the surface; a dark image the first pass calls lit is a cast shadow
-                _, hi = slabs(b.I, b.th)
+                bounds = slabs(b.I, b.th)
                 with np.errstate(invalid="ignore"):
-                    valid &= lit | ~(n0 @ b.L.T > hi)
+                    valid &= lit | ~(n0 @ b.L.T > bounds[1])
             if b.th.mirror_deg > 0:
                 bright = near_mirror(b.S, lit, b.L, b.th.mirror_deg, _one_sigma(b), n0)
                 valid &= ~bright
@@ -120,9 +123,19 @@ def _max_fs(rows_search: RowSearch) -> Callable[[Batch], Search]:
         source = np.full(P, Source.UNDETERMINED, dtype=np.uint8)
         rows = np.flatnonzero(lit.sum(axis=1) >= 3)
         if rows.size:
-            lo, hi = slabs(b.I[rows], b.th)
-            pt, il, nd, cert = rows_search(b.S[rows], lo, hi, valid[rows], b.L, b)
-            point[rows], inl[rows], optimal[rows], nodes[rows] = pt, il, cert, nd
+            if bounds is not None and b.th.response == 1.0:
+                # the same slabs as computing them on the rows: add, subtract and max are exact
+                # per value (a power, under a response, may round differently by position)
+                lo, hi = bounds if rows.size == P else (bounds[0][rows], bounds[1][rows])
+            else:
+                lo, hi = slabs(b.I[rows], b.th)
+            if rows.size == P:  # every pixel (a tile inside the object): no copies (searches read them)
+                pt, il, nd, cert = rows_search(b.S, lo, hi, valid, b.L, b)
+                point, inl = np.asarray(pt, np.float64), np.asarray(il, bool)
+                optimal, nodes = np.asarray(cert, bool), np.asarray(nd, np.int64)
+            else:
+                pt, il, nd, cert = rows_search(b.S[rows], lo, hi, valid[rows], b.L, b)
+                point[rows], inl[rows], optimal[rows], nodes[rows] = pt, il, cert, nd
             source[rows] = np.where(cert, Source.CERTIFIED, Source.BEST_FOUND)
         return Search(point, inl, optimal, nodes, source)
 
