@@ -81,10 +81,11 @@ def _assert_prepared(got, ref) -> None:
 
 def _slabs_reference(i: np.ndarray, th: Thresholds):
     """worker.problem.slabs for Thresholds before the in-place rewrite."""
-    t = th.eps + th.eps_rel * i if th.eps_rel else th.eps
-    floor = th.eps if th.min_shading is None else th.min_shading
-    a, b = np.maximum(i - t, floor), i + t
+    # the inputs hold NaN and +-inf on purpose: their arithmetic warnings are expected
     with np.errstate(invalid="ignore"):
+        t = th.eps + th.eps_rel * i if th.eps_rel else th.eps
+        floor = th.eps if th.min_shading is None else th.min_shading
+        a, b = np.maximum(i - t, floor), i + t
         dark = i <= th.shadow
     a = np.where(dark, -np.inf, a)
     b = np.where(dark, np.maximum(i, 0.0) + t, b)
