@@ -136,6 +136,27 @@ class ShardWriter:
             f.write(data)
 
 
+def _plain_zstd_level(array: zarr.Array) -> int | None:
+    """The zstd level of ``array`` when its chunks are what :class:`ChunkWriter` and
+    :class:`ChunkFiles` encode (little-endian bytes then zstd without a checksum, default chunk
+    keys, a numeric dtype, empty chunks not written), else None: zarr writes anything else."""
+    meta = array.metadata
+    codecs = tuple(getattr(meta, "codecs", ()))
+    one_byte = np.dtype(array.dtype).itemsize == 1
+    little = (BytesCodec(endian="little"), *([BytesCodec(endian=None)] if one_byte else []))
+    if (
+        len(codecs) != 2
+        or codecs[0] not in little
+        or not isinstance(codecs[1], ZstdCodec)
+        or codecs[1].checksum
+        or not isinstance(meta.chunk_key_encoding, DefaultChunkKeyEncoding)
+        or np.dtype(array.dtype).kind not in "buif"
+        or array.config.write_empty_chunks
+    ):
+        return None
+    return int(codecs[1].level)
+
+
 class ChunkWriter:
     """Writes single chunks of one small local Zarr v3 array that is not sharded (codecs
     ``bytes`` then ``zstd``, as zarr's defaults make them), straight to their files.
@@ -164,22 +185,10 @@ class ChunkWriter:
     def for_array(cls, folder: Path, array: zarr.Array) -> ChunkWriter | None:
         """A writer for ``array`` stored in ``folder``, or None when its codecs, chunk keys, data
         type or settings are not the ones this class writes (the caller then writes through zarr)."""
-        meta = array.metadata
-        codecs = tuple(getattr(meta, "codecs", ()))
-        one_byte = np.dtype(array.dtype).itemsize == 1
-        little = (BytesCodec(endian="little"), *([BytesCodec(endian=None)] if one_byte else []))
-        if (
-            len(codecs) != 2
-            or codecs[0] not in little
-            or not isinstance(codecs[1], ZstdCodec)
-            or codecs[1].checksum
-            or not isinstance(meta.chunk_key_encoding, DefaultChunkKeyEncoding)
-            or np.dtype(array.dtype).kind not in "buif"
-            or array.config.write_empty_chunks
-            or array.metadata.chunk_grid.chunk_shape[1:] != array.shape[1:]
-        ):
+        level = _plain_zstd_level(array)
+        if level is None or array.metadata.chunk_grid.chunk_shape[1:] != array.shape[1:]:
             return None
-        return cls(folder, array, int(codecs[1].level))
+        return cls(folder, array, level)
 
     def encode(self, value: NDArray[Any]) -> bytes | None:
         """The chunk file of one chunk's values; None when they are all the fill value (zarr
@@ -244,22 +253,10 @@ class ChunkFiles:
         """A writer for ``array`` stored in ``folder`` (its local directory), or None when its
         codecs, chunk keys, data type, order or settings are not the ones this class writes (the
         caller then writes through zarr)."""
-        meta = array.metadata
-        codecs = tuple(getattr(meta, "codecs", ()))
-        one_byte = np.dtype(array.dtype).itemsize == 1
-        little = (BytesCodec(endian="little"), *([BytesCodec(endian=None)] if one_byte else []))
-        if (
-            len(codecs) != 2
-            or codecs[0] not in little
-            or not isinstance(codecs[1], ZstdCodec)
-            or codecs[1].checksum
-            or not isinstance(meta.chunk_key_encoding, DefaultChunkKeyEncoding)
-            or np.dtype(array.dtype).kind not in "buif"
-            or array.config.write_empty_chunks
-            or array.order != "C"
-        ):
+        level = _plain_zstd_level(array)
+        if level is None or array.order != "C":
             return None
-        return cls(folder, array, int(codecs[1].level))
+        return cls(folder, array, level)
 
     def chunk_at(self, region: tuple[slice, ...]) -> tuple[int, ...] | None:
         """The grid coordinates of the chunk that ``region`` (a slice per dimension, missing ones

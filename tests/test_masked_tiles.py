@@ -15,19 +15,10 @@ from maxfs.worker.solve import TileResult, solve_pixels, solve_tile
 
 
 def _reference(raw, L, obs, th, solver, mask) -> TileResult:
-    k, h, w = raw.shape[:3]
+    h, w = raw.shape[1:3]
     grey, rgb, sat = obs.prepare(raw)
     r = solve_pixels(grey, L, th, solver, rgb=rgb, active=mask.reshape(-1), outlier=sat)
-    return TileResult(
-        normal=r.normal.reshape(h, w, 3),
-        albedo=r.albedo.reshape(h, w),
-        albedo_rgb=None if r.albedo_rgb is None else r.albedo_rgb.reshape(h, w, -1),
-        inliers=np.ascontiguousarray(r.inliers.T.reshape(k, h, w)),
-        inlier_count=r.count.reshape(h, w),
-        optimal=r.optimal.reshape(h, w),
-        nodes=int(r.nodes.sum()),
-        source=r.source.reshape(h, w),
-    )
+    return TileResult.of_pixels(r, h, w)
 
 
 @pytest.mark.parametrize("solver", ["exact", "milp", "l2"])

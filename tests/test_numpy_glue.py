@@ -123,19 +123,10 @@ def _assert_tiles_equal(got: TileResult, ref: TileResult) -> None:
 
 def _inactive_tile(raw, L, obs, th, solver) -> TileResult:
     """Every pixel of the tile inactive, solved (not taken from a cache)."""
-    k, h, w = raw.shape[:3]
+    h, w = raw.shape[1:3]
     g, rgb, sat = obs.prepare(raw)
     r = solve_pixels(g, L, th, solver, rgb=rgb, active=np.zeros(h * w, bool), outlier=sat)
-    return TileResult(
-        normal=r.normal.reshape(h, w, 3),
-        albedo=r.albedo.reshape(h, w),
-        albedo_rgb=None if r.albedo_rgb is None else r.albedo_rgb.reshape(h, w, -1),
-        inliers=np.ascontiguousarray(r.inliers.T.reshape(k, h, w)),
-        inlier_count=r.count.reshape(h, w),
-        optimal=r.optimal.reshape(h, w),
-        nodes=int(r.nodes.sum()),
-        source=r.source.reshape(h, w),
-    )
+    return TileResult.of_pixels(r, h, w)
 
 
 @pytest.mark.parametrize("solver", ["exact", "l2"])

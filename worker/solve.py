@@ -305,6 +305,21 @@ class TileResult:
     nodes: int  # exact-solver search nodes spent on the tile
     source: NDArray[np.uint8] | None = None  # (h, w) how each normal was obtained
 
+    @classmethod
+    def of_pixels(cls, r: PixelResult, h: int, w: int) -> TileResult:
+        """The tile's arrays from the results of its ``h * w`` pixels in raster order."""
+        k = r.inliers.shape[1]
+        return cls(
+            normal=r.normal.reshape(h, w, 3),
+            albedo=r.albedo.reshape(h, w),
+            albedo_rgb=None if r.albedo_rgb is None else r.albedo_rgb.reshape(h, w, -1),
+            inliers=np.ascontiguousarray(r.inliers.T.reshape(k, h, w)),
+            inlier_count=r.count.reshape(h, w),
+            optimal=r.optimal.reshape(h, w),
+            nodes=int(r.nodes.sum()),
+            source=r.source.reshape(h, w),
+        )
+
     def outputs(self) -> dict[str, NDArray]:
         """The arrays of :data:`storage.outputs.TILE_OUTPUTS` by name (``albedo_rgb`` only for
         colour input): what :meth:`storage.layout.JobStore.write_tile` stores."""
@@ -349,16 +364,7 @@ def solve_tile(
         )
         if part:
             r = _scatter(r, idx, h * w, obs, L, th, solver)
-    return TileResult(
-        normal=r.normal.reshape(h, w, 3),
-        albedo=r.albedo.reshape(h, w),
-        albedo_rgb=None if r.albedo_rgb is None else r.albedo_rgb.reshape(h, w, -1),
-        inliers=np.ascontiguousarray(r.inliers.T.reshape(k, h, w)),
-        inlier_count=r.count.reshape(h, w),
-        optimal=r.optimal.reshape(h, w),
-        nodes=int(r.nodes.sum()),
-        source=r.source.reshape(h, w),
-    )
+    return TileResult.of_pixels(r, h, w)
 
 
 def _scatter(
