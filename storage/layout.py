@@ -64,7 +64,6 @@ import asyncio
 import contextlib
 import hashlib
 import os
-import threading
 import time
 from collections import deque
 from collections.abc import Callable, Iterable, Mapping
@@ -89,7 +88,7 @@ from maxfs.storage.outputs import (
     TILE_OUTPUTS,
 )
 from maxfs.storage.params import JobParams
-from maxfs.storage.shards import ChunkFiles, ChunkWriter, ShardReader, ShardWriter
+from maxfs.storage.shards import ChunkFiles, ChunkWriter, ShardReader, ShardWriter, temp_path
 
 # the spec and the store's place, kept in a module without zarr (see there), named here too
 from maxfs.storage.spec import GROUP_DIR, JobSpec, is_job_folder, job_folder  # noqa: F401
@@ -839,7 +838,7 @@ class JobStore:
         replaced atomically; any worker process may write it, the runner sums them)."""
         d = self.path / PROGRESS_DIR
         d.mkdir(exist_ok=True)
-        tmp = d / f".{tile_index}.{os.getpid()}.{threading.get_ident()}"
+        tmp = temp_path(d / str(tile_index))
         tmp.write_text(str(int(pixels)))
         os.replace(tmp, d / str(tile_index))
 

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import itertools
 import os
+import secrets
 import threading
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
@@ -136,6 +137,16 @@ class ShardWriter:
             f.write(data)
 
 
+def temp_path(path: Path) -> Path:
+    """A hidden name beside ``path`` to write its new content under before renaming it into
+    place: ``.NAME.PID-THREAD-RANDOM.partial``. The random part keeps two writers apart that share
+    a pid and a thread id (processes in containers on other hosts, over a shared filesystem); the
+    leading dot keeps listings (the results zip, the progress notes) from taking it for data."""
+    return path.with_name(
+        f".{path.name}.{os.getpid()}-{threading.get_ident()}-{secrets.token_hex(4)}.partial"
+    )
+
+
 def _plain_zstd_level(array: zarr.Array) -> int | None:
     """The zstd level of ``array`` when its chunks are what :class:`ChunkWriter` and
     :class:`ChunkFiles` encode (little-endian bytes then zstd without a checksum, default chunk
@@ -210,7 +221,7 @@ class ChunkWriter:
         if path.parent not in self.made:
             path.parent.mkdir(parents=True, exist_ok=True)
             self.made.add(path.parent)
-        tmp = path.with_name(f".{path.name}.{os.getpid()}-{threading.get_ident()}.partial")
+        tmp = temp_path(path)
         try:
             with open(tmp, "wb") as f:
                 f.write(data)
@@ -348,7 +359,7 @@ class ChunkFiles:
         if data is None:
             path.unlink(missing_ok=True)
             return
-        tmp = path.with_name(f".{path.name}.{os.getpid()}-{threading.get_ident()}.partial")
+        tmp = temp_path(path)
         flags = os.O_WRONLY | os.O_CREAT | os.O_TRUNC | getattr(os, "O_CLOEXEC", 0)
         try:
             fd = os.open(tmp, flags, 0o666)

@@ -309,3 +309,15 @@ def test_the_per_image_rows_read_directly_are_what_zarr_reads(tmp_path: Path) ->
     bad.write_bytes(b"not zstd")
     with pytest.raises(Exception, match=r"(?i)zstd|decompress|frame|content"):
         JobStore.open(store.path, mode="r").digests()
+
+
+def test_temporary_names_differ_for_writers_sharing_a_pid_and_thread(tmp_path: Path) -> None:
+    """Two processes on two hosts can share a pid and a thread id over a shared filesystem: the
+    temporary name must still differ (a shared one would interleave their bytes), stay hidden
+    (dotfile) and beside the chunk (same filesystem, so the rename is atomic)."""
+    chunk = tmp_path / "c.0.0"
+    names = {shards.temp_path(chunk) for _ in range(1000)}
+    assert len(names) == 1000
+    assert all(
+        n.parent == tmp_path and n.name.startswith(".c.0.0.") and n.name.endswith(".partial") for n in names
+    )
