@@ -154,6 +154,30 @@ def test_the_command_collects_its_young_generation_less_often() -> None:
     assert a == [GC_GEN0, b[1], b[2]] and GC_GEN0 > b[0], out.stderr
 
 
+def test_the_server_keeps_cpythons_collection_thresholds(tmp_path: Path) -> None:
+    """``maxfs serve`` is long-lived (a request's garbage cycles may hold an upload's buffers):
+    it serves with the thresholds the process started with, not the CLI's larger young generation."""
+    probe = (
+        "import gc, sys\n"
+        "before = gc.get_threshold()\n"
+        "import maxfs.service.cli.entry as e\n"
+        "import uvicorn\n"
+        "def run(*a, **k):\n"
+        "    print('serving', before, gc.get_threshold(), file=sys.stderr, flush=True)\n"
+        "uvicorn.run = run\n"
+        f"data = {str(tmp_path / 'data')!r}\n"
+        "sys.argv = ['maxfs', 'serve', '--no-auth', '--data-dir', data, '--port', '0']\n"
+        "e.console()\n"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", probe], capture_output=True, text=True, env=dict(os.environ), timeout=60
+    )
+    line = [x for x in out.stderr.splitlines() if x.startswith("serving")]
+    assert line, out.stderr
+    before, during = line[-1].removeprefix("serving ").split(") (")
+    assert before + ")" == "(" + during, out.stderr
+
+
 def test_the_command_keeps_blas_to_one_thread_unless_the_user_set_it() -> None:
     from maxfs.service.cli.entry import one_blas_thread
 

@@ -38,6 +38,8 @@ def one_blas_thread(env: dict[str, str] | os._Environ[str] = os.environ) -> None
 
 #: The young generation's threshold of :func:`fewer_collections` (CPython's default: 700).
 GC_GEN0 = 20_000
+#: The thresholds :func:`fewer_collections` replaced (None until it has run).
+_USUAL: tuple[int, int, int] | None = None
 
 
 def fewer_collections() -> None:
@@ -47,9 +49,19 @@ def fewer_collections() -> None:
     With the default threshold ``maxfs run`` collected about 350 times, twice the whole heap,
     0.1-0.25 s of a 3-4 s command spent walking live objects (measured with ``gc.callbacks`` on
     bench.phases's capture); with 20,000 it collects about 10 times and never the whole heap.
-    Cycles still go: later, in batches, and a CLI process is short-lived."""
-    _, g1, g2 = gc.get_threshold()
-    gc.set_threshold(GC_GEN0, g1, g2)
+    Cycles still go: later, in batches, and a CLI process is short-lived; ``maxfs serve``, which is
+    not, puts CPython's threshold back (:func:`usual_collections`)."""
+    global _USUAL
+    if _USUAL is None:  # a second call must not take this threshold for CPython's
+        _USUAL = gc.get_threshold()
+    gc.set_threshold(GC_GEN0, _USUAL[1], _USUAL[2])
+
+
+def usual_collections() -> None:
+    """The thresholds :func:`fewer_collections` replaced, for a long-running process (the server):
+    there a request's garbage cycles may hold an upload's buffers, and should go soon."""
+    if _USUAL is not None:
+        gc.set_threshold(*_USUAL)
 
 
 def console() -> None:
