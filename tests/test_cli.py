@@ -135,7 +135,7 @@ def test_token_create_list_revoke(tmp_path: Path) -> None:
 def test_the_command_collects_its_young_generation_less_often() -> None:
     """The ``maxfs`` script's process raises the young generation's threshold (imports are not
     garbage) and keeps the older generations' as CPython has them."""
-    from maxfs.service.cli.entry import GC_GEN0
+    from maxfs.service.cli.gc_policy import GC_GEN0
 
     probe = (
         "import gc, sys\n"

@@ -387,7 +387,7 @@ def cmd_warm(args: argparse.Namespace) -> int:
 def cmd_serve(args: argparse.Namespace) -> int:
     import uvicorn
 
-    from maxfs.service.cli.entry import usual_collections
+    from maxfs.service.cli.gc_policy import usual_collections
     from maxfs.service.http.app import create_app
 
     usual_collections()  # a server is long-lived: CPython's collection thresholds, not a CLI's
