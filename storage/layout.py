@@ -88,7 +88,7 @@ from maxfs.storage.outputs import (
     TILE_OUTPUTS,
 )
 from maxfs.storage.params import JobParams
-from maxfs.storage.shards import ChunkFiles, ChunkWriter, ShardReader, ShardWriter, temp_path
+from maxfs.storage.shards import ChunkFiles, ShardReader, ShardWriter, temp_path
 
 # the spec and the store's place, kept in a module without zarr (see there), named here too
 from maxfs.storage.spec import GROUP_DIR, JobSpec, is_job_folder, job_folder  # noqa: F401
@@ -179,7 +179,6 @@ class JobStore:
         self.group = group
         self._arrays: dict[str, zarr.Array] = {}
         self._writer: tuple[ShardWriter | None] | None = None  # (writer,) once looked up
-        self._small: dict[str, ChunkWriter | None] = {}  # see _small_writer
         self._files: dict[str, ChunkFiles | None] = {}  # see _chunk_files
         self._reader: tuple[ShardReader | None] | None = None  # (reader,) once looked up
         self._counts: tuple[tuple[bytes, int], NDArray[np.int64]] | None = None
@@ -401,23 +400,16 @@ class JobStore:
             self._writer = (ShardWriter.for_array(folder, self._fixed("images")),)
         return self._writer[0]
 
-    def _small_writer(self, name: str) -> ChunkWriter | None:
-        """The direct writer of one-row chunks of array ``name`` (:class:`storage.shards.ChunkWriter`),
-        made once; None for an array it does not write."""
-        if name not in self._small:
-            if self.group.store.read_only:  # zarr refuses the write with its own error
-                return None
-            folder = self.path / GROUP_DIR / PATHS.get(name, name)
-            self._small[name] = ChunkWriter.for_array(folder, self._fixed(name))
-        return self._small[name]
-
     def _set_row(self, name: str, i: int, value: Any) -> None:
-        """``array[i] = value`` for the small per-image arrays (``uploaded``, ``input_digests``)."""
-        w = self._small_writer(name)
-        if w is None:
+        """``array[i] = value`` for the small per-image arrays (``uploaded``, ``input_digests``): one
+        chunk file per row, written straight to it (:class:`storage.shards.ChunkFiles`; through
+        zarr, each is a hop to its event loop and back, 1-3 ms), or through zarr for other layouts."""
+        files = self._chunk_files(name)
+        coords = None if files is None else files.chunk_at((slice(i, i + 1),))
+        if files is None or coords is None:
             self._fixed(name)[i] = value
         else:
-            w.write(i, value)
+            files.put(coords, files.encode(coords, value))
 
     def check_image(self, i: int, image: NDArray[Any]) -> None:
         """Refuse an image whose index, shape or dtype does not fit the job."""
@@ -540,7 +532,7 @@ class JobStore:
             return
         for i in digests:
             self.check_index(i)
-        if self._small_writer("input_digests") is not None:
+        if self._chunk_files("input_digests") is not None:
             for i, d in sorted(digests.items()):
                 self._set_row("input_digests", i, np.frombuffer(d, np.uint8))
             return

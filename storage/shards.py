@@ -147,94 +147,11 @@ def temp_path(path: Path) -> Path:
     )
 
 
-def _plain_zstd_level(array: zarr.Array) -> int | None:
-    """The zstd level of ``array`` when its chunks are what :class:`ChunkWriter` and
-    :class:`ChunkFiles` encode (little-endian bytes then zstd without a checksum, default chunk
-    keys, a numeric dtype, empty chunks not written), else None: zarr writes anything else."""
-    meta = array.metadata
-    codecs = tuple(getattr(meta, "codecs", ()))
-    one_byte = np.dtype(array.dtype).itemsize == 1
-    little = (BytesCodec(endian="little"), *([BytesCodec(endian=None)] if one_byte else []))
-    if (
-        len(codecs) != 2
-        or codecs[0] not in little
-        or not isinstance(codecs[1], ZstdCodec)
-        or codecs[1].checksum
-        or not isinstance(meta.chunk_key_encoding, DefaultChunkKeyEncoding)
-        or np.dtype(array.dtype).kind not in "buif"
-        or array.config.write_empty_chunks
-    ):
-        return None
-    return int(codecs[1].level)
-
-
-class ChunkWriter:
-    """Writes single chunks of one small local Zarr v3 array that is not sharded (codecs
-    ``bytes`` then ``zstd``, as zarr's defaults make them), straight to their files.
-
-    Through zarr, each write of such a chunk (an image's ``uploaded`` flag, its 32-byte digest)
-    is a hop to zarr's event-loop thread and back: 1-3 ms on a quiet machine, several times that
-    on a busy one where the two threads wait for the GIL. Here it is an encode (microseconds)
-    and a file: written under a temporary name and renamed into place, so a reader sees the old
-    chunk, no chunk, or the new one, never a part. The old file is removed first: on ext4 a
-    rename over an existing file (or a rewrite of one) waits for its data to reach the disk.
-    Between the two a reader sees the fill value (``uploaded`` False, digest unknown), which
-    is what a write in progress means anyway.
-    """
-
-    def __init__(self, folder: Path, array: zarr.Array, level: int) -> None:
-        self.folder = Path(folder)
-        self.chunk = tuple(int(n) for n in array.metadata.chunk_grid.chunk_shape)
-        self.shape = tuple(int(n) for n in array.shape)
-        self.dtype = np.dtype(array.dtype).newbyteorder("<")
-        self.fill = array.metadata.fill_value
-        self.keys = array.metadata.chunk_key_encoding
-        self.zstd = Zstd(level=level)
-        self.made: set[Path] = set()
-
-    @classmethod
-    def for_array(cls, folder: Path, array: zarr.Array) -> ChunkWriter | None:
-        """A writer for ``array`` stored in ``folder``, or None when its codecs, chunk keys, data
-        type or settings are not the ones this class writes (the caller then writes through zarr)."""
-        level = _plain_zstd_level(array)
-        if level is None or array.metadata.chunk_grid.chunk_shape[1:] != array.shape[1:]:
-            return None
-        return cls(folder, array, level)
-
-    def encode(self, value: NDArray[Any]) -> bytes | None:
-        """The chunk file of one chunk's values; None when they are all the fill value (zarr
-        stores no file then)."""
-        chunk = np.ascontiguousarray(np.asarray(value, dtype=self.dtype).reshape(self.chunk))
-        if not (chunk != self.fill).any():
-            return None
-        return bytes(self.zstd.encode(chunk))
-
-    def write(self, index: int, value: Any) -> None:
-        """Store row ``index`` (along the first axis, one chunk per row) as ``value``."""
-        if not 0 <= index < self.shape[0] or self.chunk[0] != 1:
-            raise ValueError(f"chunk {index} is not one row of an array of shape {self.shape}")
-        data = self.encode(value)
-        path = self.folder / self.keys.encode_chunk_key((index, *(0,) * (len(self.shape) - 1)))
-        path.unlink(missing_ok=True)
-        if data is None:
-            return
-        if path.parent not in self.made:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            self.made.add(path.parent)
-        tmp = temp_path(path)
-        try:
-            with open(tmp, "wb") as f:
-                f.write(data)
-            os.replace(tmp, path)
-        except BaseException:
-            tmp.unlink(missing_ok=True)
-            raise
-
-
 class ChunkFiles:
     """Whole chunks of one local Zarr v3 array that is not sharded (codecs ``bytes`` then
-    ``zstd``, as zarr's defaults make them: the outputs, ``done``, ``tile_stats``), encoded as
-    zarr encodes them and written as zarr's LocalStore writes them.
+    ``zstd``, as zarr's defaults make them: the outputs, ``done``, ``tile_stats``, the per-image
+    ``uploaded`` and ``input_digests`` rows), encoded as zarr encodes them and written as zarr's
+    LocalStore writes them.
 
     A finished tile writes one chunk of each output array and of its bookkeeping. Through zarr
     each is a coroutine on zarr's event loop, a thread hop for the encode and another for the
@@ -264,10 +181,22 @@ class ChunkFiles:
         """A writer for ``array`` stored in ``folder`` (its local directory), or None when its
         codecs, chunk keys, data type, order or settings are not the ones this class writes (the
         caller then writes through zarr)."""
-        level = _plain_zstd_level(array)
-        if level is None or array.order != "C":
+        meta = array.metadata
+        codecs = tuple(getattr(meta, "codecs", ()))
+        one_byte = np.dtype(array.dtype).itemsize == 1
+        little = (BytesCodec(endian="little"), *([BytesCodec(endian=None)] if one_byte else []))
+        if (
+            len(codecs) != 2
+            or codecs[0] not in little
+            or not isinstance(codecs[1], ZstdCodec)
+            or codecs[1].checksum
+            or not isinstance(meta.chunk_key_encoding, DefaultChunkKeyEncoding)
+            or np.dtype(array.dtype).kind not in "buif"
+            or array.config.write_empty_chunks
+            or array.order != "C"
+        ):
             return None
-        return cls(folder, array, level)
+        return cls(folder, array, int(codecs[1].level))
 
     def chunk_at(self, region: tuple[slice, ...]) -> tuple[int, ...] | None:
         """The grid coordinates of the chunk that ``region`` (a slice per dimension, missing ones
@@ -276,7 +205,7 @@ class ChunkFiles:
         coords = []
         for r, c, n in zip(region, self.chunk, self.shape, strict=True):
             a, b, step = r.indices(n)
-            if step != 1 or a % c or b != min(a + c, n):
+            if step != 1 or a >= b or a % c or b != min(a + c, n):  # a >= b: empty, or past the end
                 return None
             coords.append(a // c)
         return tuple(coords)

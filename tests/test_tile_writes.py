@@ -122,8 +122,21 @@ def test_regions_that_are_not_one_chunk_and_other_codecs_are_left_to_zarr(tmp_pa
     w = ChunkFiles.for_array(tmp_path / "g" / "a", a)
     assert w is not None
     assert w.chunk_at((slice(16, 20), slice(8, 13))) == (2, 1)
-    for region in [(slice(0, 4), slice(0, 8)), (slice(4, 12), slice(0, 8)), (slice(16, 19), slice(8, 13))]:
+    not_one_chunk = [
+        (slice(0, 4), slice(0, 8)),
+        (slice(4, 12), slice(0, 8)),
+        (slice(16, 19), slice(8, 13)),
+        (slice(24, 32),),  # past the end
+    ]
+    for region in not_one_chunk:
         assert w.chunk_at(region) is None, region
+    # a row past the end of a per-image array (rows of one chunk each) clamps to an empty region:
+    # not the chunk after the last
+    rows = ChunkFiles.for_array(
+        tmp_path / "g" / "rows", g.create_array("rows", shape=(4, 32), chunks=(1, 32), dtype="uint8")
+    )
+    assert rows is not None and rows.chunk_at((slice(3, 4),)) == (3, 0)
+    assert rows.chunk_at((slice(4, 5),)) is None
     others = {
         "blosc": g.create_array("blosc", shape=(8,), chunks=(4,), dtype="uint8", compressors=BloscCodec()),
         "checksum": g.create_array(
