@@ -402,14 +402,9 @@ class JobStore:
 
     def _set_row(self, name: str, i: int, value: Any) -> None:
         """``array[i] = value`` for the small per-image arrays (``uploaded``, ``input_digests``): one
-        chunk file per row, written straight to it (:class:`storage.shards.ChunkFiles`; through
-        zarr, each is a hop to its event loop and back, 1-3 ms), or through zarr for other layouts."""
-        files = self._chunk_files(name)
-        coords = None if files is None else files.chunk_at((slice(i, i + 1),))
-        if files is None or coords is None:
-            self._fixed(name)[i] = value
-        else:
-            files.put(coords, files.encode(coords, value))
+        chunk file per row, written straight to it by :meth:`_write` (through zarr, each was a hop
+        to its event loop and back, 1-3 ms)."""
+        self._write(name, (slice(i, i + 1),), value)
 
     def check_image(self, i: int, image: NDArray[Any]) -> None:
         """Refuse an image whose index, shape or dtype does not fit the job."""
@@ -465,12 +460,12 @@ class JobStore:
         self._set_row("uploaded", i, True)
 
     def uploaded(self) -> NDArray[np.bool_]:
-        return self._rows("uploaded")
+        return self._read("uploaded")
 
     def digests(self) -> list[bytes]:
         """Recorded digests: images 0..k-1, then the mask (zeros = not written). One read of
         k + 1 chunks: callers that need several views of them take this list once."""
-        return [bytes(row) for row in self._rows("input_digests")]
+        return [bytes(row) for row in self._read("input_digests")]
 
     def write_mask(self, mask: NDArray[np.bool_]) -> None:
         """Store the mask, band by band; a crash part-way leaves :meth:`mask_state`
@@ -488,7 +483,7 @@ class JobStore:
             self._write("mask", (slice(y, min(y + rows, s.height)),), m[y : y + rows])
         self._write("input_digests", row, np.frombuffer(array_digest(m, s.digest), np.uint8)[None])
 
-    def _write(self, name: str, region: tuple[slice, ...], value: NDArray[Any]) -> None:
+    def _write(self, name: str, region: tuple[slice, ...], value: Any) -> None:
         """``array[region] = value`` for an array created with the store: straight to the chunk's
         file where ``region`` is one whole chunk (:class:`storage.shards.ChunkFiles`, renamed into
         place: a reader sees the old chunk or the new one), else through zarr."""
@@ -678,23 +673,6 @@ class JobStore:
             out[i] = self._read(name, (slice(int(y), int(y) + 1), slice(int(x), int(x) + 1)))[0, 0]
         return out
 
-    def _rows(self, name: str) -> NDArray[Any]:
-        """The whole of a per-image array of one chunk per row (``uploaded``, ``input_digests``),
-        read straight from its chunk files (through zarr, each of the k + 1 chunks was a round
-        trip of zarr's event loop: 50-100 ms for 96 images); through zarr for other codecs or a
-        chunk that does not decode."""
-        files = self._chunk_files(name, write=False)
-        if files is not None and files.chunk[0] == 1 and files.chunk[1:] == files.shape[1:]:
-            out = np.empty(files.shape, files.dtype)
-            for i in range(files.shape[0]):
-                row = files.read((i, *(0,) * (len(files.shape) - 1)))
-                if row is None:
-                    break
-                out[i] = row[0]
-            else:
-                return out
-        return np.asarray(self._array(name)[...])
-
     def _write_outputs(
         self, t: Tile, arrays: Mapping[str, NDArray[Any]], token: int, stats: tuple[int, int, int]
     ) -> None:
@@ -721,13 +699,7 @@ class JobStore:
             files.put(coords, data)
         if writes:  # in one pass of zarr's event loop, not a round trip each
             sync(_gather(writes))
-        # the done marker last, once every chunk of the tile is in place
-        done = self._chunk_files("done")
-        at = None if done is None else done.chunk_at((ty, tx))
-        if done is None or at is None:
-            self._fixed("done")[t.ty, t.tx] = token
-        else:
-            done.put(at, done.encode(at, token))
+        self._write("done", (ty, tx), token)  # the done marker last, once every chunk of the tile is in place
 
     def tile_done(self, t: Tile) -> bool:
         """Whether tile ``t`` is finished with the current parameters."""

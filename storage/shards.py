@@ -232,14 +232,6 @@ class ChunkFiles:
             return None
         return bytes(self.zstd.encode(np.ascontiguousarray(chunk, dtype=self.stored)))
 
-    def read(self, coords: tuple[int, ...]) -> NDArray[Any] | None:
-        """Chunk ``coords``'s values (the whole chunk) as zarr reads them: the fill value where it
-        has no file; None where its file does not decode (zarr should read it, and raise)."""
-        got = self._load(coords)
-        if got is False:
-            return None
-        return np.full(self.chunk, self.fill, dtype=self.dtype) if got is None else got
-
     def _load(self, coords: tuple[int, ...]) -> NDArray[Any] | bool | None:
         """Chunk ``coords``'s values; None: no file (the fill value); False: it does not decode."""
         path = self.folder / self.keys.encode_chunk_key(coords)
