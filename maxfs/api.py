@@ -155,7 +155,7 @@ def solve_folder(
 
     ds = load_folder(folder)
     if not any(options.get(n) is not None for n in INTRINSICS):
-        from maxfs.service.results.research import folder_camera
+        from maxfs.worker.camera import folder_camera
 
         options = dict(options) | folder_camera(folder)  # perspective depth from the folder's K.txt
     if images is not None:

@@ -1,20 +1,26 @@
 """The shared vocabulary of solve options: solver and model names, defaults, limits and
 the one validator (:func:`check_options`), used by the library, the CLI, HTTP and the store.
 
-It sits at the bottom of the layers (numpy only) so that ``storage`` (which records the
-options) and ``worker`` (which computes with them) both import it; see ``tests/test_layers.py``.
+It sits at the bottom of the layers so that ``storage`` (which records the options) and
+``worker`` (which computes with them) both import it; see ``tests/test_layers.py``. numpy is
+imported only by the functions that check arrays: every ``maxfs`` command imports this module
+(through the settings), and the client commands (``status``, ``wait``, ``fetch``, ``jobs``)
+never need numpy, whose import costs ~0.15 s of each (``tests/test_layers.py`` keeps them free of it).
 """
 
 from __future__ import annotations
 
+import math
+import numbers
 from dataclasses import dataclass
 from enum import StrEnum
-from typing import Any
-
-import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from typing import TYPE_CHECKING, Any
 
 from maxfs.storage.errors import InvalidInputError
+
+if TYPE_CHECKING:
+    import numpy as np
+    from numpy.typing import ArrayLike, NDArray
 
 #: Default half-width of the box on ``n`` in units of the pixel's largest ``b_i``.
 #: 10 admits albedos up to ten times the brightest observation (``L.N >= 0.1``).
@@ -114,10 +120,11 @@ class Estimate:
 
 
 def _finite_number(name: str, value: object) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
+    # numbers.Real holds numpy's floats and integers too (numpy registers them): no numpy import
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
         raise InvalidInputError(f"{name} must be a number, got {value!r}")
     v = float(value)
-    if not np.isfinite(v):
+    if not math.isfinite(v):
         raise InvalidInputError(f"{name} must be finite, got {value!r}")
     return v
 
@@ -161,7 +168,7 @@ def check_options(
     if not _finite_number("box_factor", box_factor) >= 1:
         raise InvalidInputError(f"box_factor must be a finite number >= 1, got {box_factor!r}")
     if max_nodes is not None:
-        if isinstance(max_nodes, bool) or not isinstance(max_nodes, (int, np.integer)):
+        if isinstance(max_nodes, bool) or not isinstance(max_nodes, numbers.Integral):
             raise InvalidInputError(f"max_nodes must be a whole number, got {max_nodes!r}")
         if not 1 <= max_nodes <= MAX_NODES_LIMIT:
             raise InvalidInputError(f"max_nodes must be between 1 and {MAX_NODES_LIMIT}, got {max_nodes}")
@@ -227,6 +234,8 @@ def check_depth_options(
 
 def light_singular_values(lights: ArrayLike) -> NDArray[np.float64]:
     """Singular values of the ``(k, 3)`` light matrix, largest first."""
+    import numpy as np
+
     return np.linalg.svd(np.asarray(lights, dtype=np.float64), compute_uv=False)
 
 
@@ -239,6 +248,8 @@ def light_condition(lights: ArrayLike) -> float:
 def check_lights(lights: ArrayLike, k: int | None = None) -> NDArray[np.float64]:
     """Validate light directions: shape ``(k, 3)``, finite, unit length (1e-3), and able
     to determine a normal (rank 3, condition number at most :data:`MAX_LIGHT_CONDITION`)."""
+    import numpy as np
+
     try:
         arr = np.asarray(lights, dtype=np.float64)
     except (ValueError, TypeError):

@@ -22,6 +22,15 @@ def _maxfs(*args: str, timeout: float = 180) -> subprocess.CompletedProcess:
     return subprocess.run([MAXFS, *args], capture_output=True, text=True, timeout=timeout)
 
 
+def _imports(*args: str) -> set[str]:
+    """The modules a ``maxfs`` command imports (as ``python -X importtime`` lists them)."""
+    r = subprocess.run(
+        [sys.executable, "-X", "importtime", MAXFS, *args], capture_output=True, text=True, timeout=60
+    )
+    assert r.returncode == 0, r.stderr[-2000:]
+    return {ln.rsplit("|", 1)[-1].strip() for ln in r.stderr.splitlines() if ln.startswith("import time:")}
+
+
 def test_job_verbs_against_a_real_server(tmp_path: Path, server_factory: Callable[..., Server]) -> None:
     s = synthetic.sphere(8, 24, specular=0.0)
     folder = write_npy_folder(tmp_path / "in", s.images.astype(np.uint8), s.lights, s.mask)
@@ -48,6 +57,20 @@ def test_job_verbs_against_a_real_server(tmp_path: Path, server_factory: Callabl
     assert r.returncode == 2 and "already done" in r.stderr and "Traceback" not in r.stderr
     r = _maxfs("wait", "0" * 32, *url)
     assert r.returncode == 2 and "Traceback" not in r.stderr
+
+    # the client commands start light: no numpy (~0.15 s of each), no trio (~0.07 s, which httpcore
+    # imports where it is installed, as the test extra does), no zarr, numba or pydantic models
+    out = tmp_path / "fetched"
+    for verb in (["status", job_id], ["wait", job_id], ["jobs"], ["fetch", job_id, "-o", str(out)]):
+        mods = _imports(*verb, *url)
+        # (trio itself is listed even when skipped: the import that fails; a real one loads trio._core)
+        heavy = {m for m in mods if m.split(".")[0] in ("numpy", "zarr", "numba") or m.startswith("trio.")}
+        assert not heavy, f"maxfs {verb[0]} imports {sorted(heavy)[:5]}"
+    assert (out / "results.zarr").is_dir()
+    # submit reads the folder (numpy) but needs neither the store's zarr nor the solver's numba
+    mods = _imports("submit", str(folder), *url, "--images", "1-6", "--eps", "1", "--reuse")
+    heavy = {m for m in mods if m.split(".")[0] in ("zarr", "numba") or m.startswith("trio.")}
+    assert not heavy, f"maxfs submit imports {sorted(heavy)[:5]}"
 
 
 def test_version() -> None:

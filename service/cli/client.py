@@ -15,16 +15,18 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import httpx
-import numpy as np
-from numpy.typing import NDArray
 
 from maxfs.service.http.statuses import error_for_status
 from maxfs.storage.errors import ConflictError, InvalidInputError, MaxfsError
 from maxfs.storage.records import FINAL_STATES, JobState
 
 if TYPE_CHECKING:
-    # imported where used: the pydantic models take ~0.3 s to build and the dataset readers
-    # ~0.3 s to import, on every `maxfs submit`, `status` or `fetch` that starts
+    # imported where used: the pydantic models take ~0.3 s to build, the dataset readers ~0.3 s
+    # to import and numpy ~0.15 s, on every `maxfs submit`, `status` or `fetch` that starts
+    # (status, wait, fetch and jobs need none of them)
+    import numpy as np
+    from numpy.typing import NDArray
+
     from maxfs.service.http.models import JobStatus
     from maxfs.storage.datasets import Dataset
 
@@ -123,6 +125,8 @@ class MaxfsClient:
 
     def upload_image(self, job_id: str, index: int, image: NDArray) -> dict[str, Any]:
         """Send one image as raw little-endian bytes, in 1 MiB pieces (no copy of the image)."""
+        import numpy as np
+
         arr = np.ascontiguousarray(image, dtype=image.dtype.newbyteorder("<"))
         view = memoryview(arr.reshape(-1)).cast("B")
 
@@ -141,6 +145,8 @@ class MaxfsClient:
         """Send images ``first, first + 1, ...`` (of one shape and dtype) in one request, as raw
         little-endian bytes one after the other. A server older than the batch upload answers
         404 or 405 (:meth:`submit_folder` then sends them one by one)."""
+        import numpy as np
+
         arrs = [np.ascontiguousarray(im, dtype=im.dtype.newbyteorder("<")) for im in images]
         return self._call(
             "PUT",
@@ -154,6 +160,8 @@ class MaxfsClient:
         ).json()
 
     def upload_mask(self, job_id: str, mask: NDArray[np.bool_]) -> dict[str, Any]:
+        import numpy as np
+
         data = np.ascontiguousarray(mask, dtype=np.uint8).tobytes()
         return self._call(
             "PUT", f"/jobs/{job_id}/mask", content=data, headers={"Content-Type": "application/octet-stream"}
@@ -218,6 +226,8 @@ class MaxfsClient:
             time.sleep(max(0.0, poll - (time.monotonic() - asked)))
 
     def fetch_array(self, job_id: str, name: str) -> NDArray:
+        import numpy as np
+
         r = self._call("GET", f"/jobs/{job_id}/results/{name}.npy")
         return np.load(io.BytesIO(r.content), allow_pickle=False)
 
@@ -232,10 +242,10 @@ class MaxfsClient:
         An existing ``out`` is replaced only with ``overwrite``, and only if it holds maxfs results
         (or nothing): the old folder goes once the new one is complete.
         """
-        from maxfs.storage.spec import is_job_folder
-
         out = Path(out)
         if out.exists():
+            from maxfs.storage.spec import is_job_folder  # here: it loads numpy, which a fetch need not
+
             if not overwrite:
                 raise ConflictError(
                     f"{out} already exists; choose a new output folder, or add --overwrite to replace it"
@@ -312,6 +322,8 @@ class MaxfsClient:
         ``"new"`` ignored (a new job), ``"reuse"`` returned, ``"refuse"`` a :class:`ConflictError`
         naming it (``maxfs submit`` without ``--reuse``: no silent re-upload and recompute).
         """
+        import numpy as np
+
         from maxfs.storage.datasets import Dataset
         from maxfs.storage.inputs import load_folder
 

@@ -108,7 +108,7 @@ def _server_args(p: argparse.ArgumentParser) -> None:
 def _params(args: argparse.Namespace) -> dict[str, Any]:
     """The solve options given (or defaulted) on the command line, by name; the camera from the
     dataset folder's ``K.txt`` when it has one and no intrinsics are given."""
-    from maxfs.service.results.research import folder_camera
+    from maxfs.worker.camera import folder_camera
 
     kw = {o.name: v for o in SOLVE_OPTIONS if (v := getattr(args, o.name, None)) is not None}
     if getattr(args, "folder", None) and not any(n in kw for n in INTRINSICS):

@@ -78,24 +78,9 @@ def find_ground_truth(folder: Path | str) -> Path | None:
     return p if p.is_file() else None
 
 
-#: The camera intrinsics file a dataset folder may hold (3 rows of 3 numbers).
-INTRINSICS_FILE = "K.txt"
-
-
-def folder_camera(folder: Path | str) -> dict[str, float]:
-    """``{fx, fy, cx, cy}`` from a dataset folder's ``K.txt``, or ``{}`` when it has none."""
-    p = Path(folder) / INTRINSICS_FILE
-    if not p.is_file():
-        return {}
-    from maxfs.worker.depth import Camera
-
-    c = Camera.from_file(p)
-    return {"fx": c.fx, "fy": c.fy, "cx": c.cx, "cy": c.cy}
-
-
 def camera_of(options: dict) -> Camera | None:
     """The perspective camera the options give (all of fx, fy, cx, cy), else None (orthographic)."""
-    from maxfs.worker.depth import Camera
+    from maxfs.worker.camera import Camera
 
     if options.get("fx") is None:
         return None
