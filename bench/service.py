@@ -11,6 +11,9 @@ another checkout's ``REPO/.venv/bin/maxfs`` in turn with this one, for before/af
 
 - ``server``: a warm ``maxfs serve`` (``maxfs submit --wait`` + ``maxfs fetch``) against
   ``maxfs run`` on the same folder (``--folder``, default the DiLiGenT cat crop);
+- ``client``: CPU seconds (user + system) of each client command against one warm server:
+  ``submit`` (decode and upload the folder, no wait), ``status``, ``wait``, ``jobs``, ``fetch``
+  of a finished job (what a command costs besides the server's work: mostly its start);
 - ``dask``: ``maxfs run`` on its Dask path (``MAXFS_IN_PROCESS_BYTES=0``) against the in-process
   path on a 1-megapixel 16-bit job (:func:`bench.scale.write_stack`, ``--mp-k`` images);
 - ``store``: a folder's images stored as an upload stores them, then the eps estimate read from
@@ -20,13 +23,14 @@ another checkout's ``REPO/.venv/bin/maxfs`` in turn with this one, for before/af
   the server decodes one while it stores the other), and of raw images several to a request as
   ``maxfs submit`` sends them (``PUT /jobs/{id}/images``; "-" for a version without it).
 
-Run: ``python -m bench.service`` (``--only paths,server,store,dask,upload``; ``--size``, ``--k``,
+Run: ``python -m bench.service`` (``--only paths,server,client,store,dask,upload``; ``--size``, ``--k``,
 ``--tile`` change the paths table's job).
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import resource
 import shutil
@@ -246,6 +250,71 @@ def server_ratio(args: argparse.Namespace, tmp: Path) -> None:
         print(f"| {label} | {spread(run)} | {spread(srv)} | {spread(ratios)} |", flush=True)
 
 
+#: The client commands of the ``client`` section, after ``submit``; ``JOB`` and ``OUT`` are filled in.
+CLIENT_VERBS = {
+    "status": ["status", "JOB"],
+    "wait": ["wait", "JOB"],
+    "jobs": ["jobs"],
+    "fetch": ["fetch", "JOB", "-o", "OUT"],
+}
+
+
+def client_costs(args: argparse.Namespace, tmp: Path) -> None:
+    """CPU of each client command of each version, against one server of this checkout (the
+    client is what differs), the versions in turn. ``submit`` sends the folder with a fresh
+    ``--eps`` each time (a new label: no reuse of an earlier job), and the job is deleted after."""
+    folder = Path(args.folder).resolve()
+    srv = serve(HERE, tmp / "srv-client", args.workers)
+    url = ["--server", srv.url]
+    got: dict[tuple[str, str], list[float]] = {}
+    bins = versions(args)
+    try:
+        first = subprocess.run(
+            [str(HERE / "maxfs"), "submit", str(folder), *url, "--wait"],
+            capture_output=True,
+            text=True,
+            check=True,
+        )
+        job = first.stdout.split()[0]
+        n = 0
+        for _ in range(args.runs):
+            for label, bin_dir in bins.items():
+                maxfs = str(bin_dir / "maxfs")
+                n += 1
+                timed_cli(
+                    [
+                        maxfs,
+                        "submit",
+                        str(folder),
+                        *url,
+                        "--name",
+                        f"client-{n}",
+                        "--eps",
+                        f"{1 + n / 100:.2f}",
+                    ]
+                )
+                got.setdefault((label, "submit"), []).append(CPU[-1])
+                mine = subprocess.run(
+                    [maxfs, "jobs", *url, "--json"], capture_output=True, text=True, check=True
+                )
+                sent = next(j["id"] for j in json.loads(mine.stdout) if j.get("name") == f"client-{n}")
+                # not solved: the server's work would fall on the commands measured next
+                for verb in ("cancel", "wait", "delete"):
+                    subprocess.run([maxfs, verb, sent, *url], capture_output=True)
+                for verb, argv in CLIENT_VERBS.items():
+                    filled = [
+                        job if a == "JOB" else str(tmp / f"fetch-{n}") if a == "OUT" else a for a in argv
+                    ]
+                    timed_cli([maxfs, *filled, *url])
+                    got.setdefault((label, verb), []).append(CPU[-1])
+    finally:
+        srv.stop()
+    for verb in ["submit", *CLIENT_VERBS]:
+        print(
+            f"| `maxfs {verb}` | " + " | ".join(spread(got[(lab, verb)]) for lab in bins) + " |", flush=True
+        )
+
+
 def dask_ratio(args: argparse.Namespace, tmp: Path) -> None:
     """``maxfs run`` on the Dask path against the in-process path, one 1-megapixel job."""
     from bench.scale import write_stack
@@ -425,6 +494,14 @@ def main() -> None:
             )
             print("| version | maxfs run s | server s | server / run |\n|---|---|---|---|", flush=True)
             server_ratio(args, tmp)
+        if "client" in only:
+            print(
+                f"\nclient commands against a warm server, {args.folder}; CPU s (user + system), "
+                f"min / median / max of {args.runs} interleaved runs\n"
+            )
+            labels = list(versions(args))
+            print("| command | " + " | ".join(labels) + " |\n|---|" + "---|" * len(labels), flush=True)
+            client_costs(args, tmp)
         if "store" in only:
             print(
                 f"\nstoring {args.folder}'s images in a job store (tile {args.tile}), then the eps estimate "
