@@ -1,6 +1,6 @@
 """The pinhole camera of perspective depth, and a dataset folder's ``K.txt``.
 
-Its own module, numpy only: ``maxfs submit`` and ``maxfs.run`` read a folder's camera before
+Its own module, numpy only: ``maxfs submit`` and ``maxfs.solve_folder`` read a folder's camera before
 anything is solved, and :mod:`worker.depth` loads numba (its kernels, ~0.3 s).
 """
 
