@@ -123,7 +123,10 @@ def _finite_number(name: str, value: object) -> float:
     # numbers.Real holds numpy's floats and integers too (numpy registers them): no numpy import
     if isinstance(value, bool) or not isinstance(value, numbers.Real):
         raise InvalidInputError(f"{name} must be a number, got {value!r}")
-    v = float(value)
+    try:
+        v = float(value)
+    except OverflowError:  # an integer beyond float's range (a Python int is unbounded)
+        v = math.inf
     if not math.isfinite(v):
         raise InvalidInputError(f"{name} must be finite, got {value!r}")
     return v

@@ -144,6 +144,8 @@ def test_milp_time_limit_marks_pixels_not_optimal() -> None:
         ({"shadow": -3.0}, "shadow threshold"),
         ({"saturation": [255.0, 255.0]}, "saturation must be a number or one number per image"),
         ({"box_factor": 0.5}, "box_factor"),
+        ({"eps": 10**400}, "eps must be finite"),  # a Python int beyond float's range
+        ({"box_factor": np.float32("inf")}, "box_factor must be finite"),
         ({"solver": "simplex"}, "simplex"),
     ],
 )

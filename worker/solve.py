@@ -500,7 +500,9 @@ def solve(
     if k < 3:
         raise InvalidInputError(f"photometric stereo needs at least 3 images, got {k}")
     L = check_lights(lights, k)
-    check_options(eps=None, model=model, eps_rel=eps_rel, response=response, drop_bright=drop_bright)
+    # a given eps is checked now, before the response estimate uses it ("auto" and other words later)
+    given = None if isinstance(eps, str) else eps
+    check_options(eps=given, model=model, eps_rel=eps_rel, response=response, drop_bright=drop_bright)
     defaults = MODEL_DEFAULTS[Model(model)]
     deq = defaults.dequantize if dequantize is None else bool(dequantize)
     resp = defaults.response if response is None else response
