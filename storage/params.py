@@ -24,6 +24,18 @@ from maxfs.storage.options import (
 from maxfs.storage.tiles import DEFAULT_TILE
 
 #: Fields that record what was asked for, not what was used: left out of :meth:`JobParams.digest`.
+#: The tile edges a job may have, in pixels.
+TILE_RANGE = (8, 4096)
+
+
+def check_tile_edge(tile: object) -> None:
+    """Refuse a tile edge that is not a whole number in :data:`TILE_RANGE` (before any arithmetic
+    with it: a Python int may be far beyond a float's range)."""
+    lo, hi = TILE_RANGE
+    if isinstance(tile, bool) or not isinstance(tile, int) or not lo <= tile <= hi:
+        raise InvalidInputError(f"tile must be a whole number between {lo} and {hi} pixels, got {tile!r}")
+
+
 REQUEST_FIELDS = frozenset({"eps_request", "response_request"})
 #: Options of the depth made after the run: they change no tile, so they are left out of the digest too
 #: (a store made before they existed keeps its done tiles).
@@ -109,8 +121,7 @@ class JobParams:
                 eps = float(eps)
             except ValueError:
                 raise InvalidInputError(f"eps must be a positive number or 'auto', got {eps!r}") from None
-        if isinstance(tile, bool) or not isinstance(tile, int) or not 8 <= tile <= 4096:
-            raise InvalidInputError(f"tile must be a whole number between 8 and 4096 pixels, got {tile!r}")
+        check_tile_edge(tile)
         check_options(
             eps=None if eps == "auto" else eps,
             shadow=shadow,

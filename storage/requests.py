@@ -17,7 +17,7 @@ from numpy.typing import NDArray
 
 from maxfs.storage.errors import InvalidInputError
 from maxfs.storage.options import SOLVE_OPTIONS
-from maxfs.storage.params import JobParams
+from maxfs.storage.params import JobParams, check_tile_edge
 from maxfs.storage.spec import JobSpec
 from maxfs.storage.tiles import WORK_COST, WORK_PER_TILE
 
@@ -45,6 +45,8 @@ def resolve_tile(
     cost is 16: about a hundred times slower per pixel), so one task lasts seconds. ``mask``: the
     job's mask where it is known before the job is made (a local run, not an HTTP submit, whose
     mask comes after): "auto" then also balances the masked pixels over the tiles."""
+    if tile != "auto":
+        check_tile_edge(tile)
     edge = spec.resolve_tile(tile, task_memory, solver, mask)
     if tile != "auto":
         cost = WORK_COST.get(str(solver), 1)

@@ -146,6 +146,8 @@ def test_milp_time_limit_marks_pixels_not_optimal() -> None:
         ({"box_factor": 0.5}, "box_factor"),
         ({"eps": 10**400}, "eps must be finite"),  # a Python int beyond float's range
         ({"box_factor": np.float32("inf")}, "box_factor must be finite"),
+        ({"tile": 10**400}, "tile must be a whole number between 8 and 4096"),
+        ({"tile": "32"}, "tile must be a whole number between 8 and 4096"),
         ({"solver": "simplex"}, "simplex"),
     ],
 )

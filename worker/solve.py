@@ -36,6 +36,7 @@ from maxfs.storage.options import (
     check_options,
 )
 from maxfs.storage.outputs import TILE_OUTPUTS, Source
+from maxfs.storage.params import check_tile_edge
 from maxfs.storage.tiles import DEFAULT_TILE, Tile, tiles
 from maxfs.worker.lstsq import channel_albedo, normal_albedo, refit
 from maxfs.worker.noise import estimate_model
@@ -503,6 +504,7 @@ def solve(
     # a given eps is checked now, before the response estimate uses it ("auto" and other words later)
     given = None if isinstance(eps, str) else eps
     check_options(eps=given, model=model, eps_rel=eps_rel, response=response, drop_bright=drop_bright)
+    check_tile_edge(tile)
     defaults = MODEL_DEFAULTS[Model(model)]
     deq = defaults.dequantize if dequantize is None else bool(dequantize)
     resp = defaults.response if response is None else response
