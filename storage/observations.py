@@ -70,7 +70,13 @@ class ObservationModel:
         if intensities is None:
             inten = np.ones((k, C))
         else:
-            raw = np.asarray(intensities, dtype=np.float64)
+            try:
+                raw = np.asarray(intensities, dtype=np.float64)
+            except (ValueError, TypeError, OverflowError):  # words, ragged rows, ints beyond a float
+                raise InvalidInputError(
+                    f"light intensities must be numbers, one per image (or per image and channel), "
+                    f"got {str(intensities)[:80]}"
+                ) from None
             if raw.ndim == 1:
                 raw = raw[:, None]
             if raw.shape[0] != k or raw.shape[1] not in (1, C):

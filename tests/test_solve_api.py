@@ -148,6 +148,9 @@ def test_milp_time_limit_marks_pixels_not_optimal() -> None:
         ({"box_factor": np.float32("inf")}, "box_factor must be finite"),
         ({"tile": 10**400}, "tile must be a whole number between 8 and 4096"),
         ({"tile": "32"}, "tile must be a whole number between 8 and 4096"),
+        ({"intensities": [10**400, 1, 1, 1, 1, 1]}, "light intensities must be numbers"),
+        ({"intensities": "bright"}, "light intensities must be numbers"),
+        ({"intensities": [[1, 2], [1]]}, "light intensities must be numbers"),
         ({"solver": "simplex"}, "simplex"),
     ],
 )
