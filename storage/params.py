@@ -23,7 +23,6 @@ from maxfs.storage.options import (
 )
 from maxfs.storage.tiles import DEFAULT_TILE
 
-#: Fields that record what was asked for, not what was used: left out of :meth:`JobParams.digest`.
 #: The tile edges a job may have, in pixels.
 TILE_RANGE = (8, 4096)
 
@@ -36,6 +35,7 @@ def check_tile_edge(tile: object) -> None:
         raise InvalidInputError(f"tile must be a whole number between {lo} and {hi} pixels, got {tile!r}")
 
 
+#: Fields that record what was asked for, not what was used: left out of :meth:`JobParams.digest`.
 REQUEST_FIELDS = frozenset({"eps_request", "response_request"})
 #: Options of the depth made after the run: they change no tile, so they are left out of the digest too
 #: (a store made before they existed keeps its done tiles).

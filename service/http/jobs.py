@@ -45,6 +45,7 @@ from maxfs.storage.errors import (
     is_disk_full,
 )
 from maxfs.storage.layout import JobSpec, JobStore
+from maxfs.storage.options import DepthMethod
 from maxfs.storage.params import JobParams
 from maxfs.storage.records import RECORD_NAME, TRANSITIONS, JobRecord, JobState, load_record, save_record
 from maxfs.storage.tokens import User
@@ -82,10 +83,12 @@ _warm_started = threading.Lock()
 
 def _warm_finish(params: JobParams) -> None:
     """Load what a finished job's last step runs in this process (numba and the depth kernels these
-    parameters ask for) on a thread of its own, once per process,
-    when the first job is made, while its images arrive: the first job after the server started
-    otherwise paid it (~0.9 s here) between its last tile and done. Later jobs find it loaded; a
-    failure is left to the finish step, which loads them again and reports it."""
+    parameters ask for) on a thread of its own, once per process, when the first job that makes
+    depth is made, while its images arrive: the first job after the server started otherwise paid
+    it (~0.9 s here) between its last tile and done. Later jobs find it loaded; a failure is left to
+    the finish step, which loads them again and reports it."""
+    if params.depth_options()["depth"] == DepthMethod.NONE:
+        return  # nothing to load for this job: a later one may take the load
 
     def load() -> None:
         # (not preload_numba_blas: it stands a module in for scipy.linalg for a moment, which
