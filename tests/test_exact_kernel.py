@@ -19,6 +19,9 @@ from maxfs.worker.exact import (
     _lp_work,
     _sweep,
     _sweep_bins,
+    _vrow,
+    _vscan,
+    _vsplit,
     above_index,
     exact_pixels,
 )
@@ -163,6 +166,70 @@ def test_axis_hull_is_the_hull_of_the_offsets_where_few_slabs_miss() -> None:
         assert okb or not ok, f"trial {trial}"
         if ok:
             assert bmin <= smin and smax <= bmax, f"trial {trial}"
+
+
+def _slab_set(rng: np.random.Generator, k: int):
+    """Random slabs around a box: some one-sided (a lower face far below), some with an
+    axis-parallel normal (``1 / L`` is 0 there, as the kernel stores it)."""
+    L = rng.normal(size=(k, 3))
+    L[rng.random((k, 3)) < 0.05] = 0.0
+    L[np.abs(L).sum(axis=1) == 0] = [0.0, 0.0, 1.0]
+    c = rng.normal(size=3) * 5
+    h = rng.uniform(0.5, 4.0, 3)
+    rad = np.abs(L) @ h
+    lo = L @ c + rng.normal(size=k) * rad
+    hi = lo + rng.uniform(0.05, 2.0, k) * rad
+    lo[rng.random(k) < 0.2] = -1e6
+    invL = np.where(L != 0, 1.0 / np.where(L != 0, L, 1.0), 0.0)
+    return L, invL, lo, hi, c, h
+
+
+def _fresh(L, c, h, sig):
+    """``L.c`` and ``|L|.h + sig`` with the kernel's order of operations."""
+    v = L[:, 0] * c[0] + L[:, 1] * c[1] + L[:, 2] * c[2]
+    rad = np.abs(L[:, 0]) * h[0] + np.abs(L[:, 1]) * h[1] + np.abs(L[:, 2]) * h[2] + sig
+    return v, rad
+
+
+def test_contiguous_passes_decide_as_the_row_passes() -> None:
+    """Boxes with many crossing slabs are tested and split by passes over contiguous arrays
+    (no row); they must classify, count and bin exactly as the row passes on the same box."""
+    rng = np.random.default_rng(11)
+    sig = 1e-9
+    for trial in range(200):
+        k = int(rng.integers(4, 120))
+        L, invL, lo, hi, c, h = _slab_set(rng, k)
+        Lt, It = np.ascontiguousarray(L.T), np.ascontiguousarray(invL.T)
+        d = int(rng.integers(3))
+        v, rad = _fresh(L, c, h, sig)
+        row = np.arange(k, dtype=np.uint32)
+        hs, he = np.zeros(64, np.int64), np.zeros(64, np.int64)
+        args = (L, np.abs(L), invL, lo, hi, row.copy(), v.copy(), rad.copy(), k, 0, d, h[d], 0, 0.0, 0.0)
+        want = _hull_pass_bins(*args, hs, he)  # it compacts the row it is given
+        hs2, he2 = np.zeros(64, np.int64), np.zeros(64, np.int64)
+        w = np.zeros(k, np.int64)
+        got = _vscan(Lt, It, lo, hi, k, c, h, sig, d, k, w, w.copy(), w.copy(), hs2, he2)
+        assert got == want, f"trial {trial}"
+        np.testing.assert_array_equal(hs2, hs, err_msg=f"trial {trial}")
+        np.testing.assert_array_equal(he2, he, err_msg=f"trial {trial}")
+        # the row a box gets when it leaves the contiguous passes, and the split's halves
+        full = (v - rad >= lo) & (v + rad <= hi)
+        cross = (v + rad >= lo) & (v - rad <= hi) & ~full
+        prow, pv, pr = np.zeros(k, np.uint32), np.zeros(k), np.zeros(k)
+        assert _vrow(Lt, lo, hi, row, k, c, h, sig, prow, pv, pr) == (full.sum(), cross.sum())
+        np.testing.assert_array_equal(prow[: cross.sum()], np.flatnonzero(cross))
+        np.testing.assert_array_equal(pv[: cross.sum()], v[cross])
+        np.testing.assert_array_equal(pr[: cross.sum()], rad[cross])
+        ax = int(rng.integers(3))
+        hh = 0.5 * h[ax]
+        halves = []
+        for side in (-1.0, 1.0):
+            vq = v + side * (L[:, ax] * hh)
+            rq = rad - np.abs(L[:, ax]) * hh
+            fq = (vq - rq >= lo) & (vq + rq <= hi)
+            cq = (vq + rq >= lo) & (vq - rq <= hi) & ~fq
+            halves += [fq.sum(), cq.sum(), (cq & (vq >= lo) & (vq <= hi)).sum()]
+        assert _vsplit(Lt, lo, hi, k, c, h, sig, ax, hh) == tuple(halves), f"trial {trial}"
 
 
 # --- boxes decided by LPs ----------------------------------------------------------
