@@ -315,8 +315,9 @@ def test_lp_search_claims_a_point_where_the_slabs_meet_off_the_box_centre() -> N
             continue
         idx = np.arange(p, dtype=np.uint32)
         bp = np.zeros(3)
+        Lt = np.ascontiguousarray(L.T)  # the kernel's contiguous copy, for its recounts
         st, best = _lp_search(
-            L, lo, hi, idx, p, idx.copy(), v, rad, p, 0, c.copy(), h.copy(), p - 1, bp, _lp_work(p)
+            L, lo, hi, Lt, lo, hi, p, idx.copy(), v, rad, p, 0, c.copy(), h.copy(), p - 1, bp, _lp_work(p)
         )
         truth = _box_lp_feasible(L, lo, hi, c, h)
         seen[int(st)] += 1

@@ -123,19 +123,22 @@ def _lsq(L, inten, sel, k, out):  # pragma: no cover - numba
     s00 = s01 = s02 = s11 = s12 = s22 = 0.0
     r0 = r1 = r2 = 0.0
     for i in range(k):
-        if sel[i]:
-            l0 = L[i, 0]
-            l1 = L[i, 1]
-            l2 = L[i, 2]
-            s00 += l0 * l0
-            s01 += l0 * l1
-            s02 += l0 * l2
-            s11 += l1 * l1
-            s12 += l1 * l2
-            s22 += l2 * l2
-            r0 += l0 * inten[i]
-            r1 += l1 * inten[i]
-            r2 += l2 * inten[i]
+        # a weight, not a branch (the selection is data); an unselected row adds +-0.0,
+        # which leaves every sum as it was. Its intensity may be NaN: 0 * NaN is not 0
+        w = 1.0 if sel[i] else 0.0
+        l0 = L[i, 0] * w
+        l1 = L[i, 1] * w
+        l2 = L[i, 2] * w
+        t = inten[i] if sel[i] else 0.0
+        s00 += l0 * l0
+        s01 += l0 * l1
+        s02 += l0 * l2
+        s11 += l1 * l1
+        s12 += l1 * l2
+        s22 += l2 * l2
+        r0 += l0 * t
+        r1 += l1 * t
+        r2 += l2 * t
     c00 = s11 * s22 - s12 * s12
     c01 = s02 * s12 - s01 * s22
     c02 = s01 * s12 - s02 * s11
@@ -153,9 +156,21 @@ def _lsq(L, inten, sel, k, out):  # pragma: no cover - numba
 
 
 @njit(cache=True, nogil=True, _nrt=False)
-def _claim(L, lo, hi, idx, m, x, y, z, best, bp):  # pragma: no cover - numba
+def _countv(Lt, LO, HI, m, x, y, z):  # pragma: no cover - numba
+    """:func:`_count` over the usable slabs in contiguous arrays (``Lt``: ``L`` by axis, ``LO``,
+    ``HI``: the widened bounds, in the order of ``idx``): the same sums, so the same count,
+    without a gather or a branch."""
+    c = 0
+    for q in range(m):
+        v = Lt[0, q] * x + Lt[1, q] * y + Lt[2, q] * z
+        c += (v >= LO[q]) & (v <= HI[q])
+    return c
+
+
+@njit(cache=True, nogil=True, _nrt=False)
+def _claim(Lt, LO, HI, m, x, y, z, best, bp):  # pragma: no cover - numba
     """Accept ``(x, y, z)`` as the incumbent if its fresh count beats ``best``."""
-    cnt = _count(L, lo, hi, idx, m, x, y, z)
+    cnt = _countv(Lt, LO, HI, m, x, y, z)
     if cnt > best:
         bp[0] = x
         bp[1] = y
@@ -165,7 +180,9 @@ def _claim(L, lo, hi, idx, m, x, y, z, best, bp):  # pragma: no cover - numba
 
 
 @njit(cache=True, nogil=True, _nrt=False)
-def _enum_leaf(L, a, b, lo, hi, tol, idx, m, row, p, c, h, f, best, bp, nrm, off):  # pragma: no cover - numba
+def _enum_leaf(
+    L, a, b, lo, hi, tol, Lt, LO, HI, m, row, p, c, h, f, best, bp, nrm, off
+):  # pragma: no cover - numba
     """Exact depth inside a box: try every vertex of its crossing planes and faces.
 
     ``row`` holds the ``p`` crossing slabs; a vertex whose count there (plus the
@@ -216,7 +233,7 @@ def _enum_leaf(L, a, b, lo, hi, tol, idx, m, row, p, c, h, f, best, bp, nrm, off
                 ):
                     continue
                 if f + _count(L, lo, hi, row, p, vx, vy, vz) > best:
-                    best = _claim(L, lo, hi, idx, m, vx, vy, vz, best, bp)
+                    best = _claim(Lt, LO, HI, m, vx, vy, vz, best, bp)
     return best
 
 
@@ -633,7 +650,7 @@ def _lp_box(
 
 
 @njit(cache=True, nogil=True, _nrt=False)
-def _lp_search(L, lo, hi, idx, m, row, pv, pr, p, f, c, h, best, bp, lpw):  # pragma: no cover - numba
+def _lp_search(L, lo, hi, Lt, LO, HI, m, row, pv, pr, p, f, c, h, best, bp, lpw):  # pragma: no cover - numba
     """Decide a box whose crossing slabs ``row[:p]`` may miss at most ``g = f + p - best - 1``
     by LPs, without splitting it: the LP over every crossing slab, and where it has no
     point, the same with one slab of its infeasible core (at most four) left out, and so on
@@ -662,7 +679,7 @@ def _lp_search(L, lo, hi, idx, m, row, pv, pr, p, f, c, h, best, bp, lpw):  # pr
         if st == 1:
             for d in range(3):
                 x[d] = min(max(x[d], c[d] - h[d]), c[d] + h[d])
-            nb = _claim(L, lo, hi, idx, m, x[0], x[1], x[2], best, bp)
+            nb = _claim(Lt, LO, HI, m, x[0], x[1], x[2], best, bp)
             if nb > best:
                 return np.int64(1), nb
             # the point lies on the widened faces, outside the slabs: again with them narrowed
@@ -673,7 +690,7 @@ def _lp_search(L, lo, hi, idx, m, row, pv, pr, p, f, c, h, best, bp, lpw):  # pr
             ):
                 for d in range(3):
                     x[d] = min(max(x[d], c[d] - h[d]), c[d] + h[d])
-                nb = _claim(L, lo, hi, idx, m, x[0], x[1], x[2], best, bp)
+                nb = _claim(Lt, LO, HI, m, x[0], x[1], x[2], best, bp)
                 if nb > best:
                     return np.int64(1), nb
             undecided = True
@@ -925,7 +942,7 @@ def _bnb(
                     d = 2 if t == 0 else t - 1
                     f, p, cc, nbin = _vscan(Lt, It, LO, HI, m, c, h, sig, d, p, bw0, bw1, cw, hs, he)
                     if f + cc > best:
-                        best = _claim(L, lo, hi, idx, m, c[0], c[1], c[2], best, bp)
+                        best = _claim(Lt, LO, HI, m, c[0], c[1], c[2], best, bp)
                     if f + p <= best:
                         pruned = True
                         break
@@ -976,11 +993,9 @@ def _bnb(
                         rs = row if side == 0 else r1
                         _vrow(Lt, LO, HI, idx, m, stc[slot], sth[slot], sig, pool[rs], pv[rs], pr[rs])
                 if f0 + c0 > best:
-                    best = _claim(L, lo, hi, idx, m, stc[top, 0], stc[top, 1], stc[top, 2], best, bp)
+                    best = _claim(Lt, LO, HI, m, stc[top, 0], stc[top, 1], stc[top, 2], best, bp)
                 if f1 + c1 > best:
-                    best = _claim(
-                        L, lo, hi, idx, m, stc[top + 1, 0], stc[top + 1, 1], stc[top + 1, 2], best, bp
-                    )
+                    best = _claim(Lt, LO, HI, m, stc[top + 1, 0], stc[top + 1, 1], stc[top + 1, 2], best, bp)
                 if f0 + c0 > f1 + c1 or (f0 + c0 == f1 + c1 and f0 + p0 > f1 + p1):
                     _swap_top(stc, sth, stf, stp, strow, stv, top)
                 top += 2
@@ -1025,7 +1040,7 @@ def _bnb(
                 dc = 0.0
                 dh = 0.0
                 if f + cc > best:
-                    best = _claim(L, lo, hi, idx, m, c[0], c[1], c[2], best, bp)
+                    best = _claim(Lt, LO, HI, m, c[0], c[1], c[2], best, bp)
                 if f + p <= best:
                     pruned = True
                     break
@@ -1064,7 +1079,7 @@ def _bnb(
             st = np.int64(-1)
             gap = _LP_GAP if p <= _LP_GAP3_P else (2 if p <= _LP_GAP_P else 1)
             while best < f + p <= best + gap:
-                st, best = _lp_search(L, lo, hi, idx, m, prow, pvrow, prrow, p, f, c, h, best, bp, lpw)
+                st, best = _lp_search(L, lo, hi, Lt, LO, HI, m, prow, pvrow, prrow, p, f, c, h, best, bp, lpw)
                 if st != 1:
                     break
             if f + p <= best or st == 0:
@@ -1086,11 +1101,11 @@ def _bnb(
                 x = c[0] + s * np.sign(L[j, 0]) * h[0]
                 y = c[1] + s * np.sign(L[j, 1]) * h[1]
                 z = c[2] + s * np.sign(L[j, 2]) * h[2]
-                nb = _claim(L, lo, hi, idx, m, x, y, z, best, bp)
+                nb = _claim(Lt, LO, HI, m, x, y, z, best, bp)
                 if nb > best:
                     best = nb
                     continue
-            best = _enum_leaf(L, a, b, lo, hi, tol, idx, m, prow, p, c, h, f, best, bp, nrm, off)
+            best = _enum_leaf(L, a, b, lo, hi, tol, Lt, LO, HI, m, prow, p, c, h, f, best, bp, nrm, off)
             continue
         ax = 0
         if h[1] > h[ax]:
@@ -1099,7 +1114,7 @@ def _bnb(
             ax = 2
         if h[ax] < hmin or top + 2 >= S:
             # the row may still miss the last move: a superset of the crossing slabs is exact here
-            best = _enum_leaf(L, a, b, lo, hi, tol, idx, m, prow, p, c, h, f, best, bp, nrm, off)
+            best = _enum_leaf(L, a, b, lo, hi, tol, Lt, LO, HI, m, prow, p, c, h, f, best, bp, nrm, off)
             continue
         hh = 0.5 * h[ax]
         r1 = strow[top + 1]
@@ -1150,9 +1165,9 @@ def _bnb(
         stf[top + 1] = f1
         stp[top + 1] = p1
         if f0 + c0 > best:
-            best = _claim(L, lo, hi, idx, m, stc[top, 0], stc[top, 1], stc[top, 2], best, bp)
+            best = _claim(Lt, LO, HI, m, stc[top, 0], stc[top, 1], stc[top, 2], best, bp)
         if f1 + c1 > best:
-            best = _claim(L, lo, hi, idx, m, stc[top + 1, 0], stc[top + 1, 1], stc[top + 1, 2], best, bp)
+            best = _claim(Lt, LO, HI, m, stc[top + 1, 0], stc[top + 1, 1], stc[top + 1, 2], best, bp)
         # the child with the larger bound goes on top, to be explored first
         stv[top] = False
         stv[top + 1] = False
@@ -1187,14 +1202,14 @@ def _swap_top(stc, sth, stf, stp, strow, stv, top):  # pragma: no cover - numba
 
 
 @njit(cache=True, nogil=True, _nrt=False)
-def _try_point(L, lo, hi, idx, m, U, x, y, z, best, bp):  # pragma: no cover - numba
+def _try_point(Lt, LO, HI, m, U, x, y, z, best, bp):  # pragma: no cover - numba
     if abs(x) > U or abs(y) > U or abs(z) > U or not (x == x and y == y and z == z):
         return best
-    return _claim(L, lo, hi, idx, m, x, y, z, best, bp)
+    return _claim(Lt, LO, HI, m, x, y, z, best, bp)
 
 
 @njit(cache=True, nogil=True, _nrt=False)
-def _project(L, a, b, idx, m, U, margin, n0, sweeps, lo, hi, best, bp):  # pragma: no cover - numba
+def _project(L, a, b, idx, m, U, margin, n0, sweeps, Lt, LO, HI, best, bp):  # pragma: no cover - numba
     """Alternating projections onto every usable slab (shrunk by ``margin``), from ``n0``.
 
     Returns the incumbent after testing the point reached after each sweep.
@@ -1220,7 +1235,7 @@ def _project(L, a, b, idx, m, U, margin, n0, sweeps, lo, hi, best, bp):  # pragm
             y += s * L[j, 1]
             z += s * L[j, 2]
             moved = True
-        best = _try_point(L, lo, hi, idx, m, U, x, y, z, best, bp)
+        best = _try_point(Lt, LO, HI, m, U, x, y, z, best, bp)
         if best >= m or not moved:
             break
     return best
@@ -1380,18 +1395,18 @@ def solve_exact(
                 continue
             if best >= m or src < 0 or src >= px or not point[src, 0] == point[src, 0]:
                 continue
-            best = _try_point(L, lo, hi, idx, m, U, point[src, 0], point[src, 1], point[src, 2], best, bp)
+            best = _try_point(Lt, LO, HI, m, U, point[src, 0], point[src, 1], point[src, 2], best, bp)
             for i in range(k):
                 sel[i] = inl[src, i] and lit[i]
             if _lsq(L, I[px], sel, k, tmp):
-                best = _try_point(L, lo, hi, idx, m, U, tmp[0], tmp[1], tmp[2], best, bp)
+                best = _try_point(Lt, LO, HI, m, U, tmp[0], tmp[1], tmp[2], best, bp)
         if best < m:
             for i in range(k):
                 sel[i] = lit[i]  # a one-sided slab says L.n <= b, not L.n = I: no least-squares row
             for it in range(5):
                 if not _lsq(L, I[px], sel, k, tmp):
                     break
-                best = _try_point(L, lo, hi, idx, m, U, tmp[0], tmp[1], tmp[2], best, bp)
+                best = _try_point(Lt, LO, HI, m, U, tmp[0], tmp[1], tmp[2], best, bp)
                 if best >= m:
                     break
                 slack = eps * (3.0 - it) if it < 3 else 0.0
@@ -1403,7 +1418,7 @@ def solve_exact(
             tmp[0] = bp[0]
             tmp[1] = bp[1]
             tmp[2] = bp[2]
-            best = _project(L, a, b, idx, m, U, margin, tmp, np.int64(_AP_SWEEPS), lo, hi, best, bp)
+            best = _project(L, a, b, idx, m, U, margin, tmp, np.int64(_AP_SWEEPS), Lt, LO, HI, best, bp)
         nn = 0
         cert = True
         if best < m:
