@@ -15,8 +15,9 @@ Prints markdown tables.
 **kernel** (``--tables kernel``): the exact kernel's CPU time and search nodes per pixel
 (mean and p99) on :func:`worker.synthetic.realistic_scene` (16-bit, cast and attached
 shadows, glossy lobes, shot and read noise) for several k, the seven UW psm
-objects (12 images, a centre crop of the mask) and the three DiLiGenT crops
-(96 images, a centre crop), each as the raw stack a job gets. eps is the job's
+objects (12 images, a centre crop of the mask), the three DiLiGenT crops
+(96 images, a centre crop), each as the raw stack a job gets, and (``--capture K``) the
+capture ``python -m bench.phases`` times, as ``maxfs run`` gives it to the kernel. eps is the job's
 automatic rule (:func:`worker.solve.estimate_job_eps`) and the slabs are the paper
 model's; ``--model robust`` instead gives the kernel exactly what ``maxfs run`` with its
 defaults gives it (the robust model's slabs, shadows and excluded highlights, captured
@@ -38,6 +39,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import sys
+import tempfile
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -307,6 +309,23 @@ def print_kernel_table(rows: list[dict], title: str) -> None:
             )
 
 
+def capture_pixels(k: int) -> Pixels:
+    """The capture ``python -m bench.phases`` times (:func:`bench.phases.make_capture`: a realistic
+    16-bit scene written as a DiLiGenT-layout folder of PNGs), read back from its files and given
+    to the kernel as :func:`robust_pixels` does: the mask's bounding box in one tile."""
+    from bench.phases import make_capture
+
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = Path(tmp) / "capture"
+        make_capture(folder, k)
+        ds = load_folder(folder)
+        assert ds.mask is not None
+        ys, xs = np.nonzero(ds.mask)
+        win = (slice(ys.min(), ys.max() + 1), slice(xs.min(), xs.max() + 1))
+        raw = np.stack([ds.read(i)[win] for i in range(ds.k)])
+        return robust_pixels(f"bench capture ({k} images)", raw, ds.lights, ds.mask[win], ds.intensities)
+
+
 def kernel_tables(args: argparse.Namespace) -> None:
     baseline = load_baseline(args.baseline) if args.baseline else None
 
@@ -324,6 +343,9 @@ def kernel_tables(args: argparse.Namespace) -> None:
         print_kernel_table(
             rows, f"exact kernel, DiLiGenT crops (96 images, 8-bit, auto eps, {args.model} model)"
         )
+    if args.capture > 0:
+        rows = [run(capture_pixels(args.capture))]
+        print_kernel_table(rows, "exact kernel, the capture of bench.phases (16-bit, robust model, auto eps)")
 
 
 def sphere_table(args: argparse.Namespace) -> None:
@@ -354,6 +376,9 @@ def main() -> None:
     ap.add_argument("--real-size", type=int, default=40, help="kernel: realistic scene edge in pixels")
     ap.add_argument("--uw-crop", type=int, default=96, help="kernel: UW crop edge (0: skip)")
     ap.add_argument("--diligent-crop", type=int, default=64, help="kernel: DiLiGenT crop edge (0: skip)")
+    ap.add_argument(
+        "--capture", type=int, default=96, help="kernel: images of bench.phases' capture (0: skip)"
+    )
     ap.add_argument("--reps", type=int, default=3, help="kernel: interleaved timing runs (best taken)")
     ap.add_argument("--milp-sample", type=int, default=5, help="kernel: pixels checked against the MILP")
     ap.add_argument(
@@ -373,7 +398,7 @@ def main() -> None:
     if args.quick:
         args.ks, args.size, args.sample = [12, 48], 32, 15
         args.real_ks, args.real_size, args.uw_crop, args.diligent_crop = [48, 96], 24, 48, 32
-        args.reps, args.milp_sample = 2, 3
+        args.reps, args.milp_sample, args.capture = 2, 3, 0
 
     if "sphere" in args.tables:
         sphere_table(args)
