@@ -964,11 +964,7 @@ def _bnb(
                         break
                 if pruned:
                     continue
-            ax = 0
-            if h[1] > h[ax]:
-                ax = 1
-            if h[2] > h[ax]:
-                ax = 2
+            ax = _widest(h)
             if p < vmin or p <= _ENUM_P or f + p - best <= _LP_GAP or h[ax] < hmin or top + 2 >= S:
                 f, p = _vrow(Lt, LO, HI, idx, m, c, h, sig, prow, pvrow, prrow)
                 if f + p <= best:
@@ -978,13 +974,9 @@ def _bnb(
                 hh = 0.5 * h[ax]
                 f0, p0, c0, f1, p1, c1 = _vsplit(Lt, LO, HI, m, c, h, sig, ax, hh)
                 r1 = strow[top + 1]
+                _push_halves(stc, sth, top, c, h, ax, hh)
                 for side in range(2):
                     slot = top + side
-                    for d in range(3):
-                        stc[slot, d] = c[d]
-                        sth[slot, d] = h[d]
-                    stc[slot, ax] = c[ax] + (hh if side == 1 else -hh)
-                    sth[slot, ax] = hh
                     fs, ps = (f0, p0) if side == 0 else (f1, p1)
                     stf[slot] = fs
                     stp[slot] = ps
@@ -1107,11 +1099,7 @@ def _bnb(
                     continue
             best = _enum_leaf(L, a, b, lo, hi, tol, Lt, LO, HI, m, prow, p, c, h, f, best, bp, nrm, off)
             continue
-        ax = 0
-        if h[1] > h[ax]:
-            ax = 1
-        if h[2] > h[ax]:
-            ax = 2
+        ax = _widest(h)
         if h[ax] < hmin or top + 2 >= S:
             # the row may still miss the last move: a superset of the crossing slabs is exact here
             best = _enum_leaf(L, a, b, lo, hi, tol, Lt, LO, HI, m, prow, p, c, h, f, best, bp, nrm, off)
@@ -1153,13 +1141,7 @@ def _bnb(
             r1row[p1] = rad
             c1 += cross & (v >= lj) & (v <= hj)
             p1 += cross
-        for side in range(2):
-            slot = top + side
-            for d in range(3):
-                stc[slot, d] = c[d]
-                sth[slot, d] = h[d]
-            stc[slot, ax] = c[ax] + (hh if side == 1 else -hh)
-            sth[slot, ax] = hh
+        _push_halves(stc, sth, top, c, h, ax, hh)
         stf[top] = f0
         stp[top] = p0
         stf[top + 1] = f1
@@ -1175,6 +1157,30 @@ def _bnb(
             _swap_top(stc, sth, stf, stp, strow, stv, top)
         top += 2
     return best, nodes, True
+
+
+@njit(cache=True, nogil=True, _nrt=False)
+def _widest(h):  # pragma: no cover - numba
+    """The axis along which the box is widest (the first of equals): the one a split halves."""
+    ax = np.int64(0)
+    if h[1] > h[ax]:
+        ax = np.int64(1)
+    if h[2] > h[ax]:
+        ax = np.int64(2)
+    return ax
+
+
+@njit(cache=True, nogil=True, _nrt=False)
+def _push_halves(stc, sth, top, c, h, ax, hh):  # pragma: no cover - numba
+    """Stack entries ``top`` and ``top + 1``: the lower and upper half of the box ``c +- h``
+    split along ``ax`` (half-width ``hh`` there)."""
+    for side in range(2):
+        slot = top + side
+        for d in range(3):
+            stc[slot, d] = c[d]
+            sth[slot, d] = h[d]
+        stc[slot, ax] = c[ax] + (hh if side == 1 else -hh)
+        sth[slot, ax] = hh
 
 
 @njit(cache=True, nogil=True, _nrt=False)
