@@ -25,6 +25,9 @@ KINDS = ("local", "slurm", "address")
 ENV_PREFIX = "MAXFS_"
 _TRUE = frozenset({"1", "true", "t", "yes", "y", "on"})
 _FALSE = frozenset({"0", "false", "f", "no", "n", "off"})
+#: Fields with a lower bound: a count of processes or threads below 1 would wait for ever
+#: (a Dask run with no worker) or quietly mean something else.
+_AT_LEAST = {"workers": 1, "decode_slots": 1}
 
 
 def _parse(kind: str, value: Any, where: str) -> Any:
@@ -181,6 +184,10 @@ class Settings:
                 value = _parse(str(f.type), env[var], var)
             else:
                 value = f.default
+            low = _AT_LEAST.get(name)
+            if low is not None and value < low:
+                where = name if name in given else var
+                raise InvalidInputError(f"{where} must be at least {low}, got {value}")
             setattr(self, name, value)
 
     def replace(self, **changes: Any) -> Settings:

@@ -35,6 +35,11 @@ def check_tile_edge(tile: object) -> None:
         raise InvalidInputError(f"tile must be a whole number between {lo} and {hi} pixels, got {tile!r}")
 
 
+#: Usable images a pixel needs to take part in the eps and response estimates
+#: (:mod:`worker.noise`): a job with fewer images must give both.
+ESTIMATE_MIN_IMAGES = 6
+
+
 #: Fields that record what was asked for, not what was used: left out of :meth:`JobParams.digest`.
 REQUEST_FIELDS = frozenset({"eps_request", "response_request"})
 #: Options of the depth made after the run: they change no tile, so they are left out of the digest too

@@ -11,6 +11,8 @@ from pathlib import Path
 
 import pytest
 
+from tests.stores import finish_a_tile
+
 MAXFS = str(Path(sys.executable).parent / "maxfs")
 
 KERNEL_SOURCE = """
@@ -234,7 +236,8 @@ def test_other_parameters_into_an_existing_output_are_refused_and_nothing_is_los
     sc = synthetic.bump_scene(6, 16, seed=2)
     ds = load_folder(write_npy_folder(tmp_path / "in", sc.images.astype(np.uint8), sc.lights, sc.mask))
     out = tmp_path / "out"
-    ingest(ds, out, JobParams.build(eps=1.0, tile=16))
+    store, _ = ingest(ds, out, JobParams.build(eps=1.0, tile=16))
+    finish_a_tile(store, ds)  # a store with nothing finished would be replaced (test_replacing_outputs)
     with pytest.raises(ConflictError) as e:
         ingest(ds, out, JobParams.build(eps=2.0, tile=16))
     msg = str(e.value)
@@ -261,7 +264,8 @@ def test_auto_tile_resumes_on_the_grid_the_job_began_with(tmp_path: Path) -> Non
     sc = synthetic.bump_scene(6, 48, seed=2)
     ds = load_folder(write_npy_folder(tmp_path / "in", sc.images.astype(np.uint8), sc.lights, sc.mask))
     out = tmp_path / "out"
-    ingest(ds, out, JobParams.build(eps=1.0, tile=48))
+    store, _ = ingest(ds, out, JobParams.build(eps=1.0, tile=48))
+    finish_a_tile(store, ds)
     store, note = ingest(ds, out, JobParams.build(eps=1.0, tile=32), tile_auto=True)
     assert store.params.tile == 48 and note.startswith("resuming")
     with pytest.raises(ConflictError, match="tile 48 -> 32"):

@@ -55,6 +55,7 @@ from numpy.typing import NDArray
 
 from maxfs.storage.errors import InvalidInputError
 from maxfs.storage.options import Estimate
+from maxfs.storage.params import ESTIMATE_MIN_IMAGES
 from maxfs.worker.lstsq import refit
 from maxfs.worker.problem import drop_brightest
 
@@ -67,7 +68,7 @@ RANGE_FLOOR = 1e-3
 RESPONSE_GRID = np.exp(np.linspace(np.log(1.0 / 3.0), np.log(3.0), 7))
 RESPONSE_REFINE = 5
 #: Pixels with fewer usable observations than this do not take part in the estimates.
-MIN_USABLE = 6
+MIN_USABLE = ESTIMATE_MIN_IMAGES
 #: The robust model's noise: the smallest residual sigma among this many intensity bins.
 NOISE_BINS = 10
 MIN_PER_BIN = 50

@@ -48,6 +48,21 @@ def _eps(value: str) -> float | str:
     return v
 
 
+def _at_least_one(name: str) -> Callable[[str], int]:
+    """An argparse type: a whole number of at least 1 (a count of workers, images, pixels)."""
+
+    def parse(value: str) -> int:
+        try:
+            v = int(value)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{name} must be a whole number, got {value!r}") from None
+        if v < 1:
+            raise argparse.ArgumentTypeError(f"{name} must be at least 1, got {v}")
+        return v
+
+    return parse
+
+
 def _or_auto(kind: type, name: str) -> Callable[[str], Any]:
     """An argparse type: a number of ``kind``, or the word ``auto``."""
     what = "a whole number" if kind is int else "a number"
@@ -599,7 +614,9 @@ def parser() -> argparse.ArgumentParser:
     _solver_args(p)
     p.add_argument("--scheduler", default=None, help="Dask scheduler address (default: embedded cluster)")
     _cluster_arg(p)
-    p.add_argument("--workers", type=int, default=None, help="embedded cluster worker processes")
+    p.add_argument(
+        "--workers", type=_at_least_one("--workers"), default=None, help="embedded cluster worker processes"
+    )
     p.add_argument(
         "--overwrite",
         action="store_true",
@@ -646,7 +663,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--k", type=int, default=24)
     p.add_argument("--size", type=int, default=256)
     p.add_argument("--tile", type=int, default=64)
-    p.add_argument("--workers", type=int, default=None)
+    p.add_argument("--workers", type=_at_least_one("--workers"), default=None)
     p.set_defaults(fn=cmd_demo)
     p = sub.add_parser(
         "warm", help="compile the solver for this machine now (else the first run after an install does)"
@@ -662,7 +679,7 @@ def parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--workers",
-        type=int,
+        type=_at_least_one("--workers"),
         default=None,
         help="worker processes of the embedded cluster (default: MAXFS_WORKERS, else up to 4)",
     )

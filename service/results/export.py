@@ -151,6 +151,14 @@ def export(
     store_path = Path(store_path)
     store = JobStore.open(store_path, mode="r")
     counts = store.progress()  # tiles with masked pixels, as the job's record counts them
+    normal = store.read_output("normal")
+    if not np.isfinite(normal).any():  # empty files (and a mesh of no vertex) help no one: say why
+        raise InvalidInputError(
+            f"{store_path} holds no estimated normal yet ({counts.tiles_done} of {counts.tiles_total} "
+            "tiles finished): nothing to export. Finish the job first: `maxfs run` into the same "
+            "folder resumes it (`maxfs status` for a server's job), and `maxfs eval` or `maxfs export` "
+            "once it is done"
+        )
     out = Path(folder) if folder else default_folder(store_path)
     out.mkdir(parents=True, exist_ok=True)
     manifest: dict = {
@@ -160,7 +168,6 @@ def export(
         "files": {},
     }
     files = manifest["files"]
-    normal = store.read_output("normal")
 
     def put(name: str, data: bytes | None = None, **info) -> None:
         if data is not None:

@@ -17,6 +17,7 @@ from collections.abc import Callable, Iterable
 from concurrent.futures import ThreadPoolExecutor, wait
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -26,7 +27,7 @@ from maxfs.service.runs.progress import ProgressFn
 from maxfs.service.runs.timings import Timings
 from maxfs.service.settings import Settings, cluster_kind, cluster_settings, runs_in_process
 from maxfs.storage.datasets import Dataset
-from maxfs.storage.errors import ConflictError, InvalidInputError, StoreError
+from maxfs.storage.errors import ConflictError, InvalidInputError, MaxfsError, StoreError
 from maxfs.storage.imageio import encode_png
 from maxfs.storage.layout import GROUP_DIR, JobSpec, JobStore, array_digest, is_job_folder, lights_digest
 from maxfs.storage.params import JobParams
@@ -60,13 +61,16 @@ def ingest(
     set: the images not yet begun are skipped).
 
     A store that already holds *other* inputs (images, mask, lights or intensities,
-    compared by content digest) is refused unless ``overwrite``, which removes it and
-    starts from scratch. Unchanged inputs are recognised from the files' fingerprint
-    (paths, sizes, times) without decoding them again. ``tile_auto``: the user left the tile
-    edge to "auto", so an existing store's own edge is accepted. Returns the store and a note
-    for the user ("" when nothing notable happened).
+    compared by content digest) or parameters is refused unless ``overwrite``, which removes it
+    and starts from scratch, or unless it holds no finished tile (a run that stopped before
+    solving anything: it is replaced, with a note). Unchanged inputs are recognised from the
+    files' fingerprint (paths, sizes, times) without decoding them again. ``tile_auto``: the user
+    left the tile edge to "auto", so an existing store's own edge is accepted. Returns the store
+    and a note for the user ("" when nothing notable happened).
     """
     out = Path(out)
+    if ds.mask is not None and not ds.mask.any():  # before anything is written or replaced
+        raise InvalidInputError(f"the mask of {ds.name} selects no pixel; nothing to solve")
     spec = JobSpec.of(ds)
     note = ""
     if out.exists() and not out.is_dir():
@@ -78,30 +82,28 @@ def ingest(
             )
         if overwrite:
             shutil.rmtree(out)
+    store = None
     if (out / GROUP_DIR / "zarr.json").exists():
         store = JobStore.open(out)
-        _check_same_inputs(store, ds, spec, out, copy_images)
-        old = store.params
-        if tile_auto:
-            # "auto" resumes on the grid the job began with: the rule may have changed since
-            # (or the mask's balance differs), and finished tiles are kept only on that grid
-            params = replace(params, tile=old.tile)
-        comparable = old.unresolved() if params.eps is None else old
-        if comparable != params:
-            # never a quiet replacement: a sweep into one folder would keep only its last run
-            raise ConflictError(
-                f"{out} holds results made with other parameters ({param_changes(comparable, params)}); "
-                "choose another output folder (-o) to keep both, or add --overwrite to replace them"
-            )
+        try:
+            params = _resumable(store, ds, spec, out, params, copy_images, tile_auto)
+        except ConflictError:
+            if store.progress().tiles_done:
+                raise
+            # a run that stopped before its first tile (bad input, no eps, an interrupt): nothing
+            # of it is worth keeping, and refusing would send the user to --overwrite for nothing
+            store = None
+            shutil.rmtree(out)
+            note = f"replacing {out}: it held a run with other inputs or options and no finished tile"
         else:
             note = (
                 f"resuming {out}: {int(store.done_grid().sum())} of {len(store.tiles())} tiles already done"
             )
-        try:
-            load_record(out)
-        except StoreError:
-            save_record(out, JobRecord(id=out.name))
-    else:
+            try:
+                load_record(out)
+            except StoreError:
+                save_record(out, JobRecord(id=out.name))
+    if store is None:
         store = JobStore.create(out, spec, params)
         save_record(out, JobRecord(id=out.name))
         if ds.mask is not None:
@@ -112,6 +114,32 @@ def ingest(
     if not store.read_mask().any():
         raise InvalidInputError(f"the mask of {ds.name} selects no pixel; nothing to solve")
     return store, note
+
+
+def _resumable(
+    store: JobStore,
+    ds: Dataset,
+    spec: JobSpec,
+    out: Path,
+    params: JobParams,
+    copy_images: bool,
+    tile_auto: bool,
+) -> JobParams:
+    """The parameters to resume ``store`` with; ConflictError if it holds other inputs or parameters."""
+    _check_same_inputs(store, ds, spec, out, copy_images)
+    old = store.params
+    if tile_auto:
+        # "auto" resumes on the grid the job began with: the rule may have changed since
+        # (or the mask's balance differs), and finished tiles are kept only on that grid
+        params = replace(params, tile=old.tile)
+    comparable = old.unresolved() if params.eps is None else old
+    if comparable != params:
+        # never a quiet replacement: a sweep into one folder would keep only its last run
+        raise ConflictError(
+            f"{out} holds results made with other parameters ({param_changes(comparable, params)}); "
+            "choose another output folder (-o) to keep both, or add --overwrite to replace them"
+        )
+    return params
 
 
 def finished_before(store: JobStore) -> bool:
@@ -534,7 +562,50 @@ def preload_numba_blas() -> bool:
     return True
 
 
+#: Where ``run_folder(overwrite=True)`` keeps the results it replaces until the new run has
+#: finished a tile: a hidden sibling of the output folder (the same filesystem: a rename).
+ASIDE = ".{name}.maxfs-replaced"
+
+
 def run_folder(
+    ds: Dataset, out: Path, params: JobParams, *, overwrite: bool = False, **kw: Any
+) -> tuple[JobStore, JobRecord]:
+    """:func:`_run_folder`; with ``overwrite``, the results already in ``out`` are removed only
+    once the new run has finished a tile. Until then they wait beside it (:data:`ASIDE`), and a
+    run that ends before (bad input, no eps, an interrupt, an error) puts them back: a mistake in
+    the new inputs never costs the old results. Returns what :func:`_run_folder` does."""
+    out = Path(out)
+    if not (overwrite and out.is_dir() and is_job_folder(out)):
+        return _run_folder(ds, out, params, overwrite=overwrite, **kw)
+    aside = out.parent / ASIDE.format(name=out.name)
+    try:
+        if aside.exists():  # left by a run killed before it settled: an older generation
+            shutil.rmtree(aside)
+        out.rename(aside)
+    except OSError:  # e.g. a parent folder we may not write to: replace in place, as before
+        return _run_folder(ds, out, params, overwrite=True, **kw)
+    on_note = kw.get("on_note")
+    try:
+        return _run_folder(ds, out, params, overwrite=False, **kw)
+    finally:
+        if _progressed(out):
+            shutil.rmtree(aside, ignore_errors=True)
+        else:
+            shutil.rmtree(out, ignore_errors=True)
+            aside.rename(out)
+            if on_note:
+                on_note(f"kept the earlier results in {out}: the new run ended before finishing a tile")
+
+
+def _progressed(out: Path) -> bool:
+    """Whether ``out`` holds a job with at least one finished tile (with masked pixels)."""
+    try:
+        return is_job_folder(out) and JobStore.open(out, mode="r").progress().tiles_done > 0
+    except (MaxfsError, OSError, ValueError):
+        return False
+
+
+def _run_folder(
     ds: Dataset,
     out: Path,
     params: JobParams,
