@@ -120,3 +120,23 @@ def test_one_sided_shadow_slabs_match_milp() -> None:
             tol = 1e-6 * np.where(V, hi, 0).max(axis=1, keepdims=True)
             assert ((v >= lo - tol) & (v <= hi + tol) | ~il).all()
         assert (inl & np.isinf(lo)).sum() >= 5  # shadows really count
+
+
+def test_the_milp_reference_prints_nothing_to_stdout() -> None:
+    """HiGHS 1.16 writes a copyright banner to stdout on the first ``Highs()`` of a process,
+    whatever ``output_flag`` says; ``maxfs run``'s MILP fallback would print it between its
+    progress lines. A fresh process, so the banner has not been shown yet."""
+    import subprocess
+    import sys
+
+    code = (
+        "from maxfs.worker.milp import MilpSolver\n"
+        "from maxfs.worker import synthetic\n"
+        "import numpy as np\n"
+        "L = synthetic.lights_uniform(8)\n"
+        "I = np.clip(L @ np.array([0.1, 0.2, 0.9]) * 100, 0, None)[None]\n"
+        "MilpSolver(L, 5.0).solve_rows(I, I > 0, 1.0, 10.0)\n"
+    )
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout == ""

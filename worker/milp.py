@@ -23,8 +23,11 @@ pickled, so build them inside the task that uses them. ``threads=1`` everywhere.
 
 from __future__ import annotations
 
+import os
+import sys
+import threading
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -37,6 +40,31 @@ if TYPE_CHECKING:  # imported where a model is built: a run that needs no MILP n
 
 #: Slab bounds of a pixel batch: ``(lo, hi)``, or ``eps`` for the paper's slabs.
 Bounds = float | tuple[NDArray[np.float64], NDArray[np.float64]]
+
+_banner_lock = threading.Lock()
+_banner_done = False
+
+
+def new_highs(highspy: Any) -> Any:
+    """``highspy.Highs()`` without the banner HiGHS (1.16) writes to the process's stdout the first
+    time one is made, whatever ``output_flag`` says: a MILP fallback would print its copyright
+    between ``maxfs run``'s progress lines. The first one is made with fd 1 on /dev/null."""
+    global _banner_done
+    with _banner_lock:
+        if _banner_done:
+            return highspy.Highs()
+        sys.stdout.flush()
+        saved = os.dup(1)
+        try:
+            with open(os.devnull, "w") as null:
+                os.dup2(null.fileno(), 1)
+                h = highspy.Highs()
+        finally:
+            os.dup2(saved, 1)
+            os.close(saved)
+        _banner_done = True
+        return h
+
 
 #: Re-check tolerance for claimed inliers, relative to the pixel's largest b.
 #: HiGHS accepts y_i within integrality tolerance of 0, which lets a big-M row
@@ -71,7 +99,7 @@ class MilpSolver:
         import highspy
 
         self._highspy = highspy
-        h = highspy.Highs()
+        h = new_highs(highspy)
         for name, value in (
             ("output_flag", False),
             ("threads", 1),
