@@ -115,7 +115,9 @@ def test_eval_cli_matches_an_independent_computation(tmp_path: Path) -> None:
     # the human form, with the unsolved share beside the mean (left out of it), and the same
     # numbers from an NPY and a 16-bit (n+1)/2 PNG ground truth
     r = _maxfs("eval", str(store.path), "--gt", str(tmp_path / "Normal_gt.mat"))
-    unsolved = f"{9 / gt_mask.sum():.1%} unsolved, not in the mean"
+    unsolved = (
+        f"{9 / gt_mask.sum():.1%} without a normal (unsolved, or outside the job's mask), not in the mean"
+    )
     assert r.returncode == 0 and f"mean {ang.mean():.3f} deg ({unsolved})" in r.stdout, r.stdout
     np.save(tmp_path / "gt.npy", gt_n)
     r = _maxfs("eval", str(store.path), "--gt", str(tmp_path / "gt.npy"))  # a second ground truth
@@ -316,3 +318,16 @@ def test_run_reports_the_folders_own_ground_truth_and_gt_overrides_it(tmp_path: 
     )
     assert r.returncode == 0 and f"vs {tmp_path / 'gt.npy'}: " in r.stdout
     assert f"mean {ev['mean_deg']:.3f} deg" in r.stdout, r.stdout
+
+
+@pytest.mark.parametrize(
+    ("missing", "pixels", "text"),
+    [(9138, 9142, ">99.9%"), (9142, 9142, "100.0%"), (1, 9142, "<0.1%"), (9, 900, "1.0%")],
+)
+def test_the_unsolved_share_reads_100_or_0_percent_only_when_it_is(
+    missing: int, pixels: int, text: str
+) -> None:
+    from maxfs.worker.evaluate import Evaluation
+
+    ev = Evaluation(1.0, 1.0, {"5": 1.0}, pixels, pixels - missing, missing)
+    assert f"({text} without a normal" in ev.summary()

@@ -124,7 +124,8 @@ class Evaluation:
         under = ", ".join(f"<{k} deg {v:.1%}" for k, v in self.under.items())
         # the mean is over solved pixels only: a run that leaves more unsolved looks better by it
         unsolved = (
-            f" ({self.missing / self.pixels:.1%} unsolved, not in the mean)"
+            f" ({_share(self.missing, self.pixels)} without a normal (unsolved, or outside the job's "
+            "mask), not in the mean)"
             if self.missing and self.pixels
             else ""
         )
@@ -132,6 +133,17 @@ class Evaluation:
             f"angular error over {self.evaluated} of {self.pixels} ground-truth pixels: "
             f"mean {self.mean_deg:.3f} deg{unsolved}, median {self.median_deg:.3f} deg; {under}"
         )
+
+
+def _share(part: int, whole: int) -> str:
+    """``part / whole`` as a percentage that reads 0 % or 100 % only when it is (4 of 9,142
+    pixels evaluated is not "100.0 % unsolved")."""
+    text = f"{part / whole:.1%}"
+    if part < whole and text == "100.0%":
+        return ">99.9%"
+    if part > 0 and text == "0.0%":
+        return "<0.1%"
+    return text
 
 
 def evaluate(
