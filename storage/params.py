@@ -35,9 +35,9 @@ def check_tile_edge(tile: object) -> None:
         raise InvalidInputError(f"tile must be a whole number between {lo} and {hi} pixels, got {tile!r}")
 
 
-#: Usable images a pixel needs to take part in the eps and response estimates
-#: (:mod:`worker.noise`): a job with fewer images must give both.
-ESTIMATE_MIN_IMAGES = 6
+#: Usable images a pixel needs to take part in the eps estimate (:mod:`worker.noise`; 6 for
+#: its trimmed fit, else least squares from 4): a job with fewer images must give eps.
+ESTIMATE_MIN_IMAGES = 4
 
 
 #: Fields that record what was asked for, not what was used: left out of :meth:`JobParams.digest`.

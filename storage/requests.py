@@ -76,15 +76,12 @@ def job_params(
     opts = DEFAULTS | {k: v for k, v in options.items() if v is not None}
     tile = resolve_tile(spec, opts["tile"], str(opts["solver"]), task_memory, mask)
     params = JobParams.build(**opts | {"tile": tile})
-    if params.eps is None and spec.k < ESTIMATE_MIN_IMAGES:
+    if params.eps_request == "auto" and spec.k < ESTIMATE_MIN_IMAGES:
         # refused here, before anything is stored, rather than by the estimate once the job runs
-        auto = [
-            n for n, v in (("eps", params.eps_request), ("response", params.response_request)) if v == "auto"
-        ]
         raise InvalidInputError(
-            f"{spec.k} images are too few to estimate {' and '.join(auto)} (that needs {ESTIMATE_MIN_IMAGES} "
-            "usable images per pixel): give eps and response (maxfs run --eps E --response 1, or the "
-            "job's fields eps and response), E about three times the noise standard deviation in "
-            "grey levels: e.g. 3 for clean 8-bit images, about 770 (3 x 257) for 16-bit ones"
+            f"{spec.k} images are too few to estimate eps (that needs {ESTIMATE_MIN_IMAGES} usable "
+            "images per pixel): give it (maxfs run --eps E, or the job's field eps), E about three "
+            "times the noise standard deviation in grey levels: e.g. 3 for clean 8-bit images, "
+            "about 770 (3 x 257) for 16-bit ones"
         )
     return params

@@ -125,18 +125,15 @@ def test_overwrite_that_finishes_replaces_the_old_results(tmp_path: Path) -> Non
 
 
 # --- other inputs refused before anything is stored or run --------------------------------------
-@pytest.mark.parametrize(
-    ("options", "named"),
-    [({}, "eps and response"), ({"eps": 3.0}, "response"), ({"response": 1.0}, "eps")],
-)
-def test_too_few_images_to_estimate_are_refused_naming_what_to_give(options: dict, named: str) -> None:
+@pytest.mark.parametrize("options", [{}, {"response": 1.0}, {"response": "auto"}])
+def test_too_few_images_to_estimate_eps_are_refused_naming_what_to_give(options: dict) -> None:
     k = ESTIMATE_MIN_IMAGES - 1
     spec = JobSpec(k, 16, 16, None, "uint8", synthetic.lights_uniform(k)).validate()
     with pytest.raises(InvalidInputError) as e:
-        job_params(spec, {"eps": "auto", "response": "auto"} | options, 1 << 30)
-    assert f"too few to estimate {named} " in str(e.value) and "--eps" in str(e.value)
-    given = job_params(spec, {"eps": 3.0, "response": 1.0}, 1 << 30)
-    assert given.eps == 3.0
+        job_params(spec, {"eps": "auto"} | options, 1 << 30)
+    assert f"{k} images are too few to estimate eps " in str(e.value) and "--eps" in str(e.value)
+    # eps given: the response, if "auto", falls back to the linear sensor's when the job runs
+    assert job_params(spec, {"eps": 3.0} | options, 1 << 30).eps_request == 3.0
 
 
 @pytest.mark.parametrize("argv", [["--workers", "0"], ["--workers", "-1"], ["--workers", "two"]])

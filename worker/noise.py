@@ -40,6 +40,14 @@ shadows and other outliers (under half) do not drive it.
   (:func:`validated_response`): fitted without every other image, it must predict those
   better than g = 1 on most sampled pixels, else g = 1 (linear synthetic scenes: always 1).
 
+**Few images.** eps's trimmed fit keeps half of a pixel's usable observations but at least 4,
+one more than the 3 unknowns, and every pixel with 4 or more takes part. Keeping only 3 (as
+the fit did before at 6 or 7 observations) fits them exactly, so half the residuals are zero
+whatever the noise and their scale measures nothing: eps was 0.5 instead of ~1.6 at k = 6 on
+an 8-bit sphere, 51 instead of ~400 on a 16-bit one, and no eps at all at k = 4 or 5. At 8
+observations and more the rule is the old one. The response needs pixels with 6 usable
+observations; without them it is the linear sensor's (g = 1). With 3 images eps must be given.
+
 Both use the pixels of :func:`worker.solve.eps_sample`, which depend on the image size
 and mask only, never on the tile grid, so every path gets the same numbers.
 """
@@ -67,18 +75,26 @@ RANGE_FLOOR = 1e-3
 #: ``RESPONSE_REFINE`` points between the best one's neighbours (ratio 1.2).
 RESPONSE_GRID = np.exp(np.linspace(np.log(1.0 / 3.0), np.log(3.0), 7))
 RESPONSE_REFINE = 5
-#: Pixels with fewer usable observations than this do not take part in the estimates.
-MIN_USABLE = ESTIMATE_MIN_IMAGES
+#: Pixels with fewer usable observations than this do not take part in the response's estimate.
+MIN_USABLE = 6
+#: eps: pixels with at least this many usable observations take part, and the trimmed fit keeps
+#: at least this many of each pixel's (module docstring): one more than the 3 unknowns.
+FEW_USABLE = ESTIMATE_MIN_IMAGES
 #: The robust model's noise: the smallest residual sigma among this many intensity bins.
 NOISE_BINS = 10
 MIN_PER_BIN = 50
 
 
-def _rows(usable: NDArray[np.bool_], sample: int, seed: int) -> NDArray[np.intp]:
-    rows = np.flatnonzero(usable.sum(axis=1) >= MIN_USABLE)
+def _lts_eps(I: NDArray[np.float64], sel: NDArray[np.bool_], L: NDArray[np.float64]) -> NDArray[np.float64]:
+    """:func:`lts_fit` keeping at least :data:`FEW_USABLE` observations: eps's fit."""
+    return lts_fit(I, sel, L, least=FEW_USABLE)
+
+
+def _rows(usable: NDArray[np.bool_], sample: int, seed: int, least: int = MIN_USABLE) -> NDArray[np.intp]:
+    rows = np.flatnonzero(usable.sum(axis=1) >= least)
     if rows.size == 0:
         raise InvalidInputError(
-            f"cannot estimate eps: no pixel has {MIN_USABLE} or more usable observations (too few "
+            f"cannot estimate eps: no pixel has {least} or more usable observations (too few "
             "images, or most of them dark or saturated); give eps explicitly (and --response 1)"
         )
     if rows.size > sample:
@@ -87,7 +103,7 @@ def _rows(usable: NDArray[np.bool_], sample: int, seed: int) -> NDArray[np.intp]
 
 
 def lts_fit(
-    I: NDArray[np.float64], sel: NDArray[np.bool_], L: NDArray[np.float64], rounds: int = 3
+    I: NDArray[np.float64], sel: NDArray[np.bool_], L: NDArray[np.float64], rounds: int = 3, least: int = 3
 ) -> NDArray[np.float64]:
     """Least trimmed squares ``n`` per pixel: refit on the closest half, ``rounds`` times.
 
@@ -95,7 +111,7 @@ def lts_fit(
     after numpy's refit is :func:`worker.lts_kernel.lts_keep`: the same residuals and kth value,
     so the same ``keep`` and ``n`` bit for bit, without sorting every row; otherwise numpy's."""
     keep = sel.copy()
-    half = np.maximum(3, sel.sum(axis=1) // 2)
+    half = np.maximum(least, sel.sum(axis=1) // 2)
     compiled = _compiled_keep() if I.shape[0] else None
     if compiled is not None:
         I = np.ascontiguousarray(I, np.float64)
@@ -200,14 +216,16 @@ def estimate_noise(
     """(eps, sigma): see :func:`estimate_eps`. ``by_intensity``: sigma is the smallest
     robust sigma of :data:`NOISE_BINS` intensity bins (equal counts) instead of the
     sigma of all residuals (module docstring)."""
-    rows = _rows(usable, sample, seed)
+    rows = _rows(usable, sample, seed, FEW_USABLE)
+    fit = _lts_eps
     Is = np.asarray(I, np.float64)[rows]
     sel = drop_brightest(Is, usable[rows], drop_bright)
     # eps itself from numpy's fit (:func:`lts_fit`), bit for bit as before: the exact solver's
     # choice between tied maximal sets can turn on the last digit of eps (the compiled fit's
     # few-ulp difference changed 11 of 15760 pixels' inliers on bench.phases' capture)
-    r = _residuals(Is, sel, L, response, lts_fit)
-    fin = np.isfinite(r)
+    r = _residuals(Is, sel, L, response, fit)
+    # a pixel left with 3 candidates (drop_bright) is fitted exactly: residuals of no noise
+    fin = np.isfinite(r) & (sel.sum(axis=1) >= FEW_USABLE)[:, None]
     # the same estimator on pure unit Gaussian noise with the same lights, the same usable
     # observations and the same intensity bins: LTS keeps the half of each pixel's m
     # observations that a 3-parameter fit matches best, so their residuals understate the
@@ -217,7 +235,7 @@ def estimate_noise(
     # residuals on I = L.n + e are those on e alone.
     e = np.random.default_rng(seed).standard_normal(Is.shape)
     on = sel & fin.any(axis=1, keepdims=True)
-    n_e = lts_fit(np.where(on, e, 0.0), on, L)
+    n_e = fit(np.where(on, e, 0.0), on, L)
     r_e = np.where(on, e - n_e @ L.T, np.nan)
     fin &= np.isfinite(r_e)  # (a kept half the noise leaves degenerate: that pixel sits out)
     res, unit = np.abs(r[fin]), np.abs(r_e[fin])
@@ -399,8 +417,6 @@ def estimate_model(
         try:
             g = validated_response(I, usable, L, select_response(I, usable, L))
         except InvalidInputError:
-            if eps == "auto":
-                raise
             # too few observations per pixel (e.g. k < 6) to tell a response from the data:
             # the linear sensor the paper assumes; the value used is recorded as usual
             g = 1.0
