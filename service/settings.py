@@ -110,8 +110,9 @@ class Settings:
     port: int = 8000
     #: Require a bearer token on every request (``maxfs serve --no-auth`` turns it off, loopback only).
     auth: bool = True
-    #: Largest accepted request body for encoded (PNG/TIFF) images, bytes; raw uploads must
-    #: match the job's image size exactly.
+    #: Largest accepted request body for encoded (PNG/TIFF) images and for a batch of raw
+    #: images, bytes (``maxfs submit`` sends smaller batches when refused); a single raw upload
+    #: must match the job's image size exactly.
     max_upload_bytes: int = 1 << 30
     #: Largest output array served as one NPY (``/results/NAME.npy``); larger ones via results.zip.
     max_result_bytes: int = 256 << 20
@@ -144,6 +145,9 @@ class Settings:
     max_json_bytes: int = 1 << 20
     #: Seconds an upload may send nothing before it is dropped (408).
     upload_idle_timeout: float = 60.0
+    #: Bytes per second a request body must average once ``upload_idle_timeout`` has passed
+    #: (408 when slower): a body trickled a byte at a time never goes idle. 0 = no minimum.
+    upload_min_rate: float = 10_000.0
     #: Uploads (image or mask bodies) one user may have in flight at once (429 beyond).
     max_uploads_per_user: int = 8
     #: Streamed downloads (NPY arrays, results.zip) one user may have in flight at once (429

@@ -194,6 +194,7 @@ def test_a_download_whose_job_is_deleted_meanwhile_is_cut(
         lambda: http.get(f"/jobs/{jid}").json()["state"], 120, "the job to finish", 0.2, lambda s: s == "done"
     )
     got = 0
+    logged = server.log.stat().st_size
     with pytest.raises(httpx.HTTPError), http.stream("GET", f"/jobs/{jid}/{what}") as r:
         assert r.status_code == 200
         for piece in r.iter_raw(1 << 16):
@@ -201,6 +202,11 @@ def test_a_download_whose_job_is_deleted_meanwhile_is_cut(
                 assert http.delete(f"/jobs/{jid}", params={"purge": "true"}).status_code == 200
             got += len(piece)
     assert got > 0
+    # an expected end, told in one line: no traceback for the operator to chase
+    with server.log.open("rb") as f:
+        f.seek(logged)
+        tail = f.read().decode(errors="replace")
+    assert "was deleted while its answer was being made" in tail and "Traceback" not in tail, tail[-2000:]
 
 
 def test_starting_a_job_cancelled_before_its_uploads_says_what_to_do(http: httpx.Client) -> None:
@@ -208,3 +214,49 @@ def test_starting_a_job_cancelled_before_its_uploads_says_what_to_do(http: httpx
     assert http.delete(f"/jobs/{jid}").json()["state"] == "cancelled"
     r = http.post(f"/jobs/{jid}/start")
     assert r.status_code == 409 and "purge=true" in r.json()["detail"], r.text
+
+
+def _trickled(chunk: bytes, every: float, count: int):
+    """A starlette Request whose body arrives as ``count`` pieces ``chunk``, one every ``every`` s."""
+    import asyncio
+
+    from starlette.requests import Request
+
+    sent = 0
+
+    async def receive() -> dict:
+        nonlocal sent
+        await asyncio.sleep(every)
+        sent += 1
+        return {"type": "http.request", "body": chunk, "more_body": sent < count}
+
+    scope = {"type": "http", "method": "PUT", "path": "/", "headers": [], "query_string": b""}
+    return Request(scope, receive)
+
+
+@pytest.mark.parametrize(
+    ("chunk", "too_slow"),
+    [(b"x" * 10, True), (b"x" * 200, False)],  # 33 and 667 bytes per second against a minimum of 100
+    ids=["a trickle is cut", "a steady body arrives"],
+)
+def test_a_body_must_average_the_minimum_rate_once_the_idle_timeout_has_passed(
+    chunk: bytes, too_slow: bool
+) -> None:
+    """Never idle for 0.5 s, yet 33 bytes per second: 408 once 0.5 s + n / 100 s have passed;
+    667 bytes per second arrives whole."""
+    import asyncio
+
+    from maxfs.service.http.guards import body_chunks
+    from maxfs.storage.errors import RequestTimeoutError
+
+    async def read() -> int:
+        n = 0
+        async for piece in body_chunks(_trickled(chunk, 0.3, 12), 1 << 20, 0.5, min_rate=100.0):
+            n += len(piece)
+        return n
+
+    if too_slow:
+        with pytest.raises(RequestTimeoutError, match=r"too slowly.*MAXFS_UPLOAD_MIN_RATE"):
+            asyncio.run(read())
+    else:
+        assert asyncio.run(read()) == 12 * len(chunk)

@@ -118,6 +118,55 @@ def test_slow_and_silent_clients_do_not_lock_others_out(server: Server) -> None:
     assert all(closed), f"{closed.count(False)} slow connections still open 6 s after they opened"
 
 
+UNREAD_BODIES = [
+    # (what, request head): each answered without its body being read
+    (
+        "a health check with a chunked body",
+        b"GET /health HTTP/1.1\r\nHost: x\r\nTransfer-Encoding: chunked\r\n\r\n",
+    ),
+    (
+        "a job creation without a token",
+        b"POST /jobs HTTP/1.1\r\nHost: x\r\nContent-Length: 1000000000\r\n\r\n",
+    ),
+    ("an unknown path", b"PUT /nothing HTTP/1.1\r\nHost: x\r\nTransfer-Encoding: chunked\r\n\r\n"),
+]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(("what", "head"), UNREAD_BODIES, ids=[u[0] for u in UNREAD_BODIES])
+def test_a_body_nobody_reads_cannot_hold_the_connection(server: Server, what: str, head: bytes) -> None:
+    """The answer goes out before the body is read; the client then trickles the body a few
+    bytes every 0.3 s, which restarts uvicorn's keep-alive timer each time. The connection is
+    closed within the 2 s head deadline of the answer (plus slack), not kept for ever (a
+    thousand such connections from a few addresses held every slot of a server)."""
+    chunked = b"chunked" in head
+    with socket.create_connection(_addr(server), timeout=10) as s:
+        s.sendall(head)
+        s.settimeout(10)
+        first = s.recv(65536)
+        assert first.startswith(b"HTTP/1.1 "), first
+        t0 = time.monotonic()
+        closed = False
+        while time.monotonic() - t0 < 8:
+            try:
+                s.sendall(b"1\r\nx\r\n" if chunked else b"xxx")
+            except OSError:
+                closed = True
+                break
+            s.settimeout(0.3)
+            try:
+                if s.recv(65536) == b"":
+                    closed = True
+                    break
+            except TimeoutError:
+                pass
+            except OSError:
+                closed = True
+                break
+        took = time.monotonic() - t0
+    assert closed and took < 5, f"{what}: still open {took:.1f} s after the answer"
+
+
 # -- 2. request smuggling -----------------------------------------------------------------------
 
 

@@ -202,3 +202,23 @@ def test_submit_folder_sends_batches(server: Server, http: httpx.Client, tmp_pat
         store = JobStore.open(server.data / "jobs" / job, mode="r")
         np.testing.assert_array_equal(store.read_array("images"), IMAGES)
         assert c.wait(job, poll=0.1, timeout=120)["state"] == "done"
+
+
+def test_submit_sends_smaller_requests_to_a_server_that_takes_less(
+    module_server_factory: Callable[..., Server], tmp_path: Path
+) -> None:
+    """A server whose MAXFS_MAX_UPLOAD_BYTES is below a batch (here 2 of the 6 images) answers
+    413; the client halves its requests until they fit, and every image arrives as sent."""
+    from maxfs.storage.datasets import write_npy_folder
+
+    small = module_server_factory(
+        tmp_path / "data", workers=1, env={"MAXFS_MAX_UPLOAD_BYTES": str(2 * NBYTES + 100)}
+    )
+    folder = write_npy_folder(tmp_path / "stack", IMAGES, LIGHTS, None)
+    with MaxfsClient(small.url) as c:
+        seen: list[int] = []
+        job = c.submit_folder(folder, eps=2.0, on_upload=lambda sent, k: seen.append(sent))
+        assert seen[-1] == K
+        store = JobStore.open(small.data / "jobs" / job, mode="r")
+        np.testing.assert_array_equal(store.read_array("images"), IMAGES)
+        assert c.wait(job, poll=0.1, timeout=120)["state"] == "done"

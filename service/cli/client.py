@@ -378,20 +378,32 @@ class MaxfsClient:
             itemsize = np.dtype(ds.dtype).itemsize
             batches = upload_batches(missing, ds.height * ds.width * (ds.channels or 1) * itemsize)
             batched = [True]  # until a server without the batch upload says otherwise
+            most = [len(max(batches, key=len, default=[]))]  # images per request this server takes
 
-            def send(batch: list[int]) -> int:
-                """Decode a request's images (decoders release the GIL) and send them."""
-                images = [ds.read(i) for i in batch]
+            def put(batch: list[int], images: list[NDArray]) -> None:
+                if len(batch) > most[0]:  # a smaller request size learnt from an earlier 413
+                    put(batch[: most[0]], images[: most[0]])
+                    put(batch[most[0] :], images[most[0] :])
+                    return
                 if len(batch) > 1 and batched[0]:
                     try:
                         self.upload_images(job_id, batch[0], images)
-                        return len(batch)
+                        return
                     except MaxfsError as e:
-                        if getattr(e, "http_status", None) not in (404, 405):
+                        status = getattr(e, "http_status", None)
+                        if status == 413:  # this server's MAXFS_MAX_UPLOAD_BYTES is smaller: halves
+                            most[0] = min(most[0], max(1, len(batch) // 2))
+                            put(batch, images)
+                            return
+                        if status not in (404, 405):
                             raise
                         batched[0] = False  # an older server (nothing stored): one request per image
                 for i, image in zip(batch, images, strict=True):
                     self.upload_image(job_id, i, image)
+
+            def send(batch: list[int]) -> int:
+                """Decode a request's images (decoders release the GIL) and send them."""
+                put(batch, [ds.read(i) for i in batch])
                 return len(batch)
 
             # UPLOADS_IN_FLIGHT requests at once, each decoded on its own thread: the server

@@ -8,7 +8,12 @@ connections that send a head slowly, or nothing, hold every slot and everyone el
 
 - a head deadline (``MAXFS_HEADER_TIMEOUT``): a request head must have arrived whole within
   that many seconds of the connection opening or of the previous answer, else the connection
-  is closed (a body has its own idle timeout, :func:`service.guards.body_chunks`);
+  is closed (a body the app reads has its own timeouts, :func:`service.guards.body_chunks`);
+  the same deadline holds for the rest of a body nobody reads: when the answer went out before
+  the body was read (401, 404, a health check with a body), the client has that long to finish
+  sending it, else the connection is closed. Without it a client trickling a byte every few
+  seconds into such a body kept the connection (uvicorn's keep-alive timer restarts on every
+  byte), and a thousand of them, from a few addresses, held every slot of the server;
 - a cap on open connections per client address (``MAXFS_MAX_CONNECTIONS_PER_CLIENT``):
   beyond it a new connection gets a 503 and is closed before anything is read;
 - request smuggling refused (RFC 9112 section 6.1): a request with both ``Content-Length`` and
@@ -118,10 +123,20 @@ def guarded_protocol(header_timeout: float, per_client: int) -> type[H11Protocol
 
         def _head_late(self) -> None:
             self.head_timer = None
+            if self.transport.is_closing():
+                return
             # their_state leaves IDLE once a whole request head was parsed
-            if self.conn.their_state is h11.IDLE and not self.transport.is_closing():
+            if self.conn.their_state is h11.IDLE:
                 log.info(
                     "closed a connection from %s: no whole request head in %g s", self.counted, header_timeout
+                )
+                self.transport.close()
+            elif self.conn.our_state is h11.DONE and self.conn.their_state is h11.SEND_BODY:
+                # answered, and still sending a body that nothing reads
+                log.info(
+                    "closed a connection from %s: the rest of an unread body took over %g s",
+                    self.counted,
+                    header_timeout,
                 )
                 self.transport.close()
 

@@ -36,6 +36,7 @@ from maxfs.storage.errors import (
     ClientGoneError,
     InsufficientStorageError,
     InvalidInputError,
+    NotFoundError,
     PayloadTooLargeError,
     QuotaError,
     RequestTimeoutError,
@@ -71,21 +72,37 @@ def check_declared(request: Request, limit: int) -> None:
         )
 
 
-async def body_chunks(request: Request, limit: int, idle_timeout: float) -> AsyncIterator[bytes]:
+async def body_chunks(
+    request: Request, limit: int, idle_timeout: float, min_rate: float = 0.0
+) -> AsyncIterator[bytes]:
     """The body in the pieces it arrives in: 413 past ``limit`` bytes, 408 when nothing
-    arrives for ``idle_timeout`` seconds, :class:`ClientGoneError` when the client hangs up."""
+    arrives for ``idle_timeout`` seconds or when, after those first seconds, the body has
+    averaged fewer than ``min_rate`` bytes per second (``n`` bytes are due ``idle_timeout + n /
+    min_rate`` seconds after the start: a byte every few seconds is never idle, and would hold
+    a connection and an upload slot for days), :class:`ClientGoneError` when the client hangs up."""
     check_declared(request, limit)
     stream = request.stream().__aiter__()
+    loop = asyncio.get_running_loop()
+    start = loop.time()
     n = 0
     while True:
+        wait = idle_timeout
+        if min_rate > 0:  # the time by which more than n bytes must have arrived
+            wait = min(wait, start + idle_timeout + n / min_rate - loop.time())
         try:
             # a timeout scope per piece, not wait_for's task per piece (a 2 MB body comes in
             # 30-40 pieces)
-            async with asyncio.timeout(idle_timeout):
+            async with asyncio.timeout(max(wait, 0.0)):
                 chunk = await stream.__anext__()
         except StopAsyncIteration:
             return
         except TimeoutError:
+            if wait < idle_timeout:
+                raise RequestTimeoutError(
+                    f"the body arrives too slowly: {n} bytes in {loop.time() - start:.0f} s, less "
+                    f"than {min_rate:g} bytes per second (MAXFS_UPLOAD_MIN_RATE); send it again "
+                    "over a faster link"
+                ) from None
             raise RequestTimeoutError(
                 f"the body stopped arriving: nothing for {idle_timeout:g} s "
                 f"after {n} bytes (MAXFS_UPLOAD_IDLE_TIMEOUT); send it again"
@@ -98,10 +115,10 @@ async def body_chunks(request: Request, limit: int, idle_timeout: float) -> Asyn
         yield chunk
 
 
-async def read_body(request: Request, limit: int, idle_timeout: float) -> bytes:
+async def read_body(request: Request, limit: int, idle_timeout: float, min_rate: float = 0.0) -> bytes:
     """A small request body, in memory (see :func:`body_chunks`)."""
     buf = bytearray()
-    async for chunk in body_chunks(request, limit, idle_timeout):
+    async for chunk in body_chunks(request, limit, idle_timeout, min_rate):
         buf += chunk
     return bytes(buf)
 
@@ -113,6 +130,7 @@ async def stage_body(
     limit: int,
     idle_timeout: float,
     feed: Callable[[bytes], object] | None = None,
+    min_rate: float = 0.0,
 ) -> Path:
     """Stream the body to a new file in ``folder`` whose name starts with ``prefix`` (removed
     by the caller, or as an orphan on the next start), as :func:`body_chunks` allows; each
@@ -121,7 +139,7 @@ async def stage_body(
     path = Path(tmp)
     try:
         with os.fdopen(fd, "wb", buffering=0) as f:  # unbuffered: what arrived is on disk
-            async for chunk in body_chunks(request, limit, idle_timeout):
+            async for chunk in body_chunks(request, limit, idle_timeout, min_rate):
                 f.write(chunk)
                 if feed is not None:
                     feed(chunk)
@@ -185,10 +203,12 @@ class HeldStream(StreamingResponse):
             await super().__call__(scope, receive, timed_send)
         except Exception as e:
             gone = e.exceptions if isinstance(e, BaseExceptionGroup) else (e,)
-            if not all(isinstance(x, ClientGoneError) for x in gone):
+            # a reader that left, or a job deleted while its answer streamed (job_still_there):
+            # expected, one log line; the answer stays incomplete and the server closes the
+            # connection, so the client sees a cut download, never fill values
+            if not all(isinstance(x, ClientGoneError | NotFoundError) for x in gone):
                 raise
-            # the answer stays incomplete: the server closes the connection
-            log.info("%s %s: %s", scope.get("method"), scope.get("path"), gone[0])
+            log.info("%s %s: cut: %s", scope.get("method"), scope.get("path"), gone[0])
         finally:
             self.slot.__exit__(None, None, None)
 
@@ -276,7 +296,7 @@ class RequestGuard:
                     raise AuthError("the API token is not valid (mistyped or revoked); ask for a new one")
             if scope["method"] == "POST" and scope["path"].rstrip("/") == "/jobs":
                 s = self.settings
-                body = await read_body(request, s.max_json_bytes, s.upload_idle_timeout)
+                body = await read_body(request, s.max_json_bytes, s.upload_idle_timeout, s.upload_min_rate)
                 # parsed in a thread: a large or deeply nested body must not stall other requests
                 await asyncio.to_thread(_check_k, body, s.max_k)
                 receive = _replay(body, receive)

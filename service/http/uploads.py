@@ -103,6 +103,7 @@ class Uploads:
                 limit,
                 s.upload_idle_timeout,
                 feed=hasher.h.update,
+                min_rate=s.upload_min_rate,
             )
             try:
                 size = part.stat().st_size
@@ -171,7 +172,9 @@ class Uploads:
             f: Any = None
             try:
                 got = 0
-                async for chunk in body_chunks(request, limit, self.s.upload_idle_timeout):
+                async for chunk in body_chunks(
+                    request, limit, self.s.upload_idle_timeout, self.s.upload_min_rate
+                ):
                     view = memoryview(chunk)
                     while view:
                         index = first + len(stored)
@@ -240,7 +243,7 @@ class Uploads:
         """A PNG or TIFF body: read into memory (the decoder wants it whole; at most ``limit``
         bytes, what a staged file was read back as), its header checked before any pixel is
         decoded, decoded in a thread, stored."""
-        data = await read_body(request, limit, self.s.upload_idle_timeout)
+        data = await read_body(request, limit, self.s.upload_idle_timeout, self.s.upload_min_rate)
         if not self.m.job_dir(job_id).exists():
             raise FileNotFoundError(job_id)  # deleted while the body arrived (see image())
         img = await self.m.decoder.decode(
@@ -262,7 +265,9 @@ class Uploads:
         spec = self.before_upload(request, job_id, "the mask can be set")
         HW = spec.height * spec.width
         with self.m.uploads.take(user_of(request).name), self.m.disk.hold(2 * HW, "the mask"):
-            data = await read_body(request, 2 * HW + (1 << 20), self.s.upload_idle_timeout)
+            data = await read_body(
+                request, 2 * HW + (1 << 20), self.s.upload_idle_timeout, self.s.upload_min_rate
+            )
             if is_raw(request):
                 if len(data) != HW:
                     raise InvalidInputError(
