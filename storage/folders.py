@@ -9,8 +9,9 @@ a subset of a dataset's images (``--images 1-20,25``).
   the light of the i-th image in that order.
 
 Lights file: ``light_directions.txt`` or ``lights.txt`` (k lines of x y z; x right, y up, z toward the
-camera), or ``lights.npy``. Optional: ``light_intensities.txt``/``intensities.txt`` (k x 3 or k x 1),
-``mask.png`` (non-zero = object).
+camera), or ``lights.npy``. Optional: ``light_intensities.txt``/``intensities.txt`` (k x 3 or k x 1,
+for grey and RGB images alike), ``mask.png`` (above half its maximum = object). Text and mask rules as
+in :mod:`maxfs.storage.datasets`.
 """
 
 from __future__ import annotations
@@ -23,9 +24,11 @@ from numpy.typing import NDArray
 
 from maxfs.storage.datasets import (
     Dataset,
+    Table,
     _existing,
     _lights,
     _mask_from,
+    _npy_table,
     _probe,
     _read_matrix,
     folder_notes,
@@ -33,7 +36,6 @@ from maxfs.storage.datasets import (
     read_image,
 )
 from maxfs.storage.errors import DatasetError, InvalidInputError
-from maxfs.storage.imageio import load_npy
 from maxfs.storage.options import (
     DTYPES,
     WARN_LIGHT_CONDITION,
@@ -65,19 +67,19 @@ def lights_file(folder: Path) -> Path | None:
     return None
 
 
-def _read_lights(folder: Path, k: int) -> tuple[NDArray[np.float64], NDArray[np.float64] | None, list[Path]]:
+def _read_lights(folder: Path, k: int) -> tuple[NDArray[np.float64], Table | None, list[Path]]:
+    """The light directions, the intensities' table (fitted to the images by ``_probe``) and the
+    files they came from."""
     lf = lights_file(folder)
     if lf is None:
         raise DatasetError(f"{folder}: no lights file; add light_directions.txt (k lines of x y z)")
-    raw = load_npy(lf).astype(np.float64) if lf.suffix == ".npy" else _read_matrix(lf, 3, "light directions")
-    lights = _lights(raw, k, lf)
+    what = "light directions"
+    lights = _lights(_npy_table(lf, what) if lf.suffix == ".npy" else _read_matrix(lf, (3,), what), k)
     inten, used = None, [lf]
     for n in INTENSITY_FILES:
         p = folder / n
         if p.is_file():
-            inten = np.loadtxt(p, ndmin=2)
-            if inten.shape[0] != k:
-                raise DatasetError(f"{p}: {inten.shape[0]} light intensities for {k} images")
+            inten = _read_matrix(p, (1, 3), "light intensities")
             used.append(p)
             break
     return lights, inten, used
@@ -122,7 +124,7 @@ def tiff_stack(folder: Path, path: Path) -> Dataset:
         if str(arr.dtype) not in DTYPES:
             if np.issubdtype(arr.dtype, np.floating):
                 return arr.astype(np.float32)
-            raise DatasetError(f"{path} page {i}: pixel type {arr.dtype}; use 8/16-bit or float32")
+            raise DatasetError(f"{path} page {i + 1}: pixel type {arr.dtype}; use 8/16-bit or float32")
         return arr
 
     mask = _mask_from(folder / "mask.png") if (folder / "mask.png").exists() else None

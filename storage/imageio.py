@@ -89,7 +89,7 @@ _PNG_CHANNELS = {0: 1, 2: 3, 3: 4, 4: 2, 6: 4}
 def _reason(e: Exception) -> str:
     """A decoder's complaint for a user: no object reprs (``<_io.BytesIO object at 0x...>``)."""
     if isinstance(e, UnidentifiedImageError):
-        return "not a PNG, TIFF, BMP, JPEG or other image file this server reads"
+        return "not a PNG, TIFF, BMP, JPEG or other image file that maxfs reads"
     text = re.sub(r"<[^<>]* at 0x[0-9a-fA-F]+>", "the data", str(e))
     return f"{type(e).__name__}: {text}" if text else type(e).__name__
 
@@ -170,6 +170,16 @@ def decode_checked(
         raise PayloadTooLargeError(
             f"{what}: decoding would take {head.decoded_bytes} bytes, more than the {max_bytes} allowed"
         )
+    arr = _normalise(_decode_raw(data, head, what), what)
+    if arr.shape != head.shape or arr.dtype != head.dtype:
+        raise InvalidInputError(
+            f"{what}: decoded to {arr.shape} {arr.dtype}, but its header says {head.shape} {head.dtype}"
+        )
+    return arr
+
+
+def _decode_raw(data: bytes, head: ImageHeader, what: str) -> NDArray:
+    """The decoder's array of checked bytes, alpha channel and all."""
     try:
         if head.format == "PNG":
             arr = imagecodecs.png_decode(data)
@@ -184,12 +194,7 @@ def decode_checked(
                 arr = _pil_array(im)
     except Exception as e:  # decoders raise many types for corrupt data
         raise InvalidInputError(f"{what}: cannot decode image ({_reason(e)})") from None
-    arr = _normalise(np.asarray(arr), what)
-    if arr.shape != head.shape or arr.dtype != head.dtype:
-        raise InvalidInputError(
-            f"{what}: decoded to {arr.shape} {arr.dtype}, but its header says {head.shape} {head.dtype}"
-        )
-    return arr
+    return np.asarray(arr)
 
 
 def _pil_bytes_per_pixel(mode: str) -> int:
@@ -216,16 +221,35 @@ def _pil_array(im: Image.Image) -> NDArray:
     return np.asarray(im)
 
 
-def read_image(path: Path) -> NDArray:
-    """Read an image file (see :func:`decode_bytes`: its header is checked before decoding)."""
-    path = Path(path)
+def _file_bytes(path: Path) -> bytes:
     try:
-        data = path.read_bytes()
+        return path.read_bytes()
     except FileNotFoundError:
         raise InvalidInputError(f"image file {path} does not exist") from None
     except OSError as e:
         raise InvalidInputError(f"cannot read image file {path}: {e}") from None
-    return decode_bytes(data, what=str(path))
+
+
+def read_image(path: Path) -> NDArray:
+    """Read an image file (see :func:`decode_bytes`: its header is checked before decoding)."""
+    path = Path(path)
+    return decode_bytes(_file_bytes(path), what=str(path))
+
+
+def read_mask_plane(path: Path) -> NDArray:
+    """A mask file as one (H, W) plane: the maximum of its colour channels, or its alpha channel
+    where the colour is all zero and the alpha varies (a mask painted as transparency over black,
+    which :func:`read_image` would read as empty since it drops alpha)."""
+    path = Path(path)
+    data = _file_bytes(path)
+    img = decode_bytes(data, what=str(path))  # the header and size checks of any image
+    plane = img.max(axis=2) if img.ndim == 3 else img
+    if plane.any():
+        return plane
+    raw = _decode_raw(data, probe_bytes(data, str(path)), str(path))
+    if raw.ndim == 3 and raw.shape[2] in (2, 4) and raw[..., -1].min() != raw[..., -1].max():
+        return np.ascontiguousarray(raw[..., -1])
+    return plane
 
 
 def load_npy(path: Path, what: str = "") -> NDArray:

@@ -19,6 +19,8 @@ from typing import TYPE_CHECKING, Any
 from maxfs.storage.errors import InvalidInputError
 
 if TYPE_CHECKING:
+    from collections.abc import Sequence
+
     import numpy as np
     from numpy.typing import ArrayLike, NDArray
 
@@ -248,10 +250,15 @@ def light_condition(lights: ArrayLike) -> float:
     return float(s[0] / s[2]) if s.size == 3 and s[2] > 1e-12 * s[0] else float("inf")
 
 
-def check_lights(lights: ArrayLike, k: int | None = None) -> NDArray[np.float64]:
+def check_lights(lights: ArrayLike, k: int | None = None, rows: Sequence[str] = ()) -> NDArray[np.float64]:
     """Validate light directions: shape ``(k, 3)``, finite, unit length (1e-3), and able
-    to determine a normal (rank 3, condition number at most :data:`MAX_LIGHT_CONDITION`)."""
+    to determine a normal (rank 3, condition number at most :data:`MAX_LIGHT_CONDITION`).
+    ``rows``: where each light came from (``"line 4"`` of a file), named in the messages."""
     import numpy as np
+
+    def light(i: int) -> str:
+        # numbered from 1, as images are (``--images``, "image 3 (003.png)")
+        return f"light {i + 1}" + (f" ({rows[i]})" if i < len(rows) else "")
 
     try:
         arr = np.asarray(lights, dtype=np.float64)
@@ -261,13 +268,15 @@ def check_lights(lights: ArrayLike, k: int | None = None) -> NDArray[np.float64]
         raise InvalidInputError(f"lights must be k rows of 3 numbers (x, y, z), got shape {arr.shape}")
     if k is not None and arr.shape[0] != k:
         raise InvalidInputError(f"{arr.shape[0]} light directions for {k} images; give one per image")
-    if not np.all(np.isfinite(arr)):
-        raise InvalidInputError("lights contain NaN or infinite values")
+    finite = np.isfinite(arr).all(axis=1)
+    if not finite.all():
+        bad = int(np.argmin(finite))
+        raise InvalidInputError(f"{light(bad)} contains NaN or infinite values; give three finite numbers")
     norms = np.linalg.norm(arr, axis=1)
     if np.any(np.abs(norms - 1.0) > 1e-3):
-        bad = int(np.argmax(np.abs(norms - 1.0)))
+        bad = int(np.argmax(np.abs(norms - 1.0) > 1e-3))  # the first, as a reader of the file meets it
         raise InvalidInputError(
-            f"light {bad} has length {norms[bad]:.4f}; light directions must be unit vectors "
+            f"{light(bad)} has length {norms[bad]:.4f}; light directions must be unit vectors "
             "(normalise them, and put the light's strength in the intensities instead)"
         )
     # normalise once: dividing unit vectors again can move them by an ulp, and the stored
