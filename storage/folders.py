@@ -175,6 +175,10 @@ def plain_folder(folder: Path) -> Dataset:
 # -- choosing images -----------------------------------------------------------------------------------
 def parse_selection(text: str, k: int) -> list[int]:
     """``"1-20,25"`` to 0-based indices ``[0..19, 24]``: 1-based, inclusive ranges, in the order given."""
+    if not text.strip(" ,"):  # ``--images=`` (an empty shell variable): not "every image" by accident
+        raise InvalidInputError(
+            f"--images is empty; give image numbers such as 1-{k} or 1-3,5, or leave it out"
+        )
     out: list[int] = []
     for part in text.replace(" ", "").split(","):
         if not part:
@@ -187,8 +191,10 @@ def parse_selection(text: str, k: int) -> list[int]:
         if not (1 <= a <= b <= k):
             raise InvalidInputError(f"--images: {part} is outside 1..{k} (or the range runs backwards)")
         out.extend(range(a - 1, b))
-    if len(set(out)) != len(out):
-        raise InvalidInputError("--images: an image is chosen twice")
+    twice = sorted({i + 1 for i in out if out.count(i) > 1})
+    if twice:
+        which = f"image {twice[0]} is" if len(twice) == 1 else f"images {', '.join(map(str, twice))} are"
+        raise InvalidInputError(f"--images: {which} chosen twice; choose each once")
     if len(out) < 3:
         raise InvalidInputError(f"--images chooses {len(out)} images; at least 3 are needed")
     return out

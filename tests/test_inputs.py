@@ -65,7 +65,16 @@ def test_plain_folder_takes_images_in_natural_name_order(tmp_path: Path) -> None
 
 def test_selection_parses_and_restricts_images_and_lights(tmp_path: Path) -> None:
     assert parse_selection("1-3,5", 8) == [0, 1, 2, 4]
-    bad_cases = (("0-3", "outside"), ("1-9", "outside"), ("2,2,3", "twice"), ("1,x", "not N"), ("1,2", "3"))
+    bad_cases = (
+        ("0-3", "outside"),
+        ("1-9", "outside"),
+        ("2,2,3", "image 2 is chosen twice"),
+        ("1-4,3-5", "images 3, 4 are chosen twice"),
+        ("1,x", "not N"),
+        ("1,2", "3"),
+        ("", "empty"),
+        (" , ", "empty"),
+    )
     for bad, msg in bad_cases:
         with pytest.raises(InvalidInputError, match=msg):
             parse_selection(bad, 8)

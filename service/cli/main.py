@@ -153,7 +153,7 @@ def _dataset(args: argparse.Namespace) -> Any:
     from maxfs.storage.inputs import load_folder
 
     ds = load_folder(args.folder)
-    if getattr(args, "images", None):
+    if getattr(args, "images", None) is not None:
         ds = select_images(ds, parse_selection(args.images, ds.k))
     for warning in (conditioning_warning(ds.lights), *ds.notes):
         if warning:
