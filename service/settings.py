@@ -157,7 +157,8 @@ class Settings:
     download_idle_timeout: float = 60.0
     #: Encoded images (PNG/TIFF) decoded at once, in threads, each bounded by its job's image size.
     decode_slots: int = 2
-    #: Open connections ``maxfs serve`` accepts at once; beyond that new ones get 503.
+    #: Open connections ``maxfs serve`` accepts at once; at the cap a new one closes the oldest
+    #: idle one (no request yet, or a body nobody reads), and gets 503 only when every one is busy.
     max_connections: int = 1024
     #: Open connections one client address may have; beyond that a new one gets 503 and is
     #: closed before anything is read (:mod:`service.http.connections`). 0 = no limit.

@@ -752,16 +752,39 @@ def test_tile_time_limit_stops_a_tile_and_fails_the_job(strict: Server, cluster:
         poll_until(lambda: _idle(cluster), 10, "the worker free")
 
 
-def test_connection_cap_answers_503_at_once(strict: Server) -> None:
+def test_connection_cap_makes_room_from_idle_connections_and_answers_503_when_all_are_busy(
+    strict: Server,
+) -> None:
+    """12 connections at most. Twelve that send nothing hold every slot, yet a newcomer is served:
+    it closes the oldest idle one. Eleven requests whose bodies the server is reading (a job
+    description arriving slowly) are busy, and then a newcomer gets 503 at once, not a hung
+    accept queue."""
     host, port = strict.url.removeprefix("http://").split(":")
     idle = [socket.create_connection((host, int(port))) for _ in range(12)]
     try:
+        time.sleep(0.5)
+        assert httpx.get(strict.url + "/health", timeout=10).status_code == 200
+    finally:
+        for s in idle:
+            s.close()
+    token = strict.token("busy")
+    head = (
+        f"POST /jobs HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer {token}\r\n"
+        "Content-Type: application/json\r\nContent-Length: 100000\r\n\r\n{"
+    ).encode()
+    busy = []
+    try:
+        for _ in range(11):
+            s = socket.create_connection((host, int(port)))
+            s.sendall(head)
+            busy.append(s)
+            time.sleep(0.05)  # its head parsed: a request in progress, not an idle connection
         time.sleep(0.5)
         t0 = time.perf_counter()
         r = httpx.get(strict.url + "/health", timeout=10)
         assert r.status_code == 503 and time.perf_counter() - t0 < 2
     finally:
-        for s in idle:
+        for s in busy:
             s.close()
     poll_until(lambda: httpx.get(strict.url + "/health", timeout=10).status_code == 200, 10, "served again")
 

@@ -167,6 +167,29 @@ def test_a_body_nobody_reads_cannot_hold_the_connection(server: Server, what: st
     assert closed and took < 5, f"{what}: still open {took:.1f} s after the answer"
 
 
+@pytest.mark.slow
+def test_idle_connections_make_room_for_newcomers_at_the_cap(server: Server) -> None:
+    """160 silent connections from four addresses (40 each, under the per-address cap of 50;
+    together above MAXFS_MAX_CONNECTIONS=150), reopened as fast as they close, hold every slot;
+    a newcomer closes the oldest idle one instead of getting 503. Measured within the 2 s head
+    deadline, so the deadline is not what frees the slots."""
+    sources = ["127.0.0.3", "127.0.0.4", "127.0.0.5", "127.0.0.6"]
+    headers = {"Authorization": f"Bearer {server.tokens['alice']}"}
+    socks = [
+        socket.create_connection(_addr(server), timeout=10, source_address=(sources[i % 4], 0))
+        for i in range(160)
+    ]
+    try:
+        t0 = time.monotonic()
+        codes = [httpx.get(server.url + "/jobs", headers=headers, timeout=10).status_code for _ in range(10)]
+        took = time.monotonic() - t0
+    finally:
+        for s in socks:
+            s.close()
+    assert took < 1.5, f"too slow to tell the cap from the head deadline: {took:.1f} s"
+    assert codes == [200] * 10, codes
+
+
 # -- 2. request smuggling -----------------------------------------------------------------------
 
 

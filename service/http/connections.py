@@ -16,6 +16,12 @@ connections that send a head slowly, or nothing, hold every slot and everyone el
   byte), and a thousand of them, from a few addresses, held every slot of the server;
 - a cap on open connections per client address (``MAXFS_MAX_CONNECTIONS_PER_CLIENT``):
   beyond it a new connection gets a 503 and is closed before anything is read;
+- room for newcomers: when every slot (``MAXFS_MAX_CONNECTIONS``) is taken, a new connection
+  closes the oldest one that is doing nothing for anyone (no request head yet, idle between
+  requests, or answered and still sending a body nobody reads) instead of getting the 503. A
+  request in progress, or an upload being read, is never closed for it. Without this, clients
+  on many addresses reopening such connections as fast as they were closed kept every slot
+  (the deadlines above close each within seconds, not before the next one arrives);
 - request smuggling refused (RFC 9112 section 6.1): a request with both ``Content-Length`` and
   ``Transfer-Encoding`` gets 400 and the connection is closed, so nothing pipelined behind it
   (or hidden in its body) is answered.
@@ -79,6 +85,7 @@ def guarded_protocol(header_timeout: float, per_client: int) -> type[H11Protocol
     class GuardedProtocol(H11Protocol):
         head_timer: asyncio.TimerHandle | None = None
         counted: str | None = None
+        opened: float = 0.0
 
         def __init__(self, *args: Any, **kw: Any) -> None:
             super().__init__(*args, **kw)
@@ -86,6 +93,7 @@ def guarded_protocol(header_timeout: float, per_client: int) -> type[H11Protocol
 
         def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
             super().connection_made(transport)
+            self.opened = self.loop.time()
             host = self.client[0] if self.client else ""
             if per_client and open_per_client.get(host, 0) >= per_client:
                 transport.write(full)
@@ -94,6 +102,19 @@ def guarded_protocol(header_timeout: float, per_client: int) -> type[H11Protocol
             open_per_client[host] = open_per_client.get(host, 0) + 1
             self.counted = host
             self._arm_head_timer()
+            self._make_room()
+
+        def _make_room(self) -> None:
+            """At the connection cap, close the oldest idle ones (:meth:`idle`) so that this one
+            is served: uvicorn answers 503 to a request that arrives while the cap is reached."""
+            limit = self.limit_concurrency
+            over = len(self.connections) - limit + 1 if limit else 0
+            if over <= 0:
+                return
+            idle = sorted((p for p in self.connections if p is not self and _idle(p)), key=lambda p: p.opened)
+            for p in idle[:over]:
+                log.info("closed an idle connection from %s to make room at the connection cap", p.counted)
+                p.transport.close()
 
         def connection_lost(self, exc: Exception | None) -> None:
             if self.counted is not None:
@@ -141,6 +162,17 @@ def guarded_protocol(header_timeout: float, per_client: int) -> type[H11Protocol
                 self.transport.close()
 
     return GuardedProtocol
+
+
+def _idle(p: Any) -> bool:
+    """Whether connection ``p`` does nothing for anyone: no request head yet or idle between
+    requests (no request in progress), or answered and still sending a body nobody reads."""
+    if not isinstance(p, H11Protocol) or p.transport is None or p.transport.is_closing():
+        return False
+    c = p.conn
+    if c.their_state is h11.IDLE:
+        return p.cycle is None or p.cycle.response_complete
+    return c.our_state is h11.DONE and c.their_state is h11.SEND_BODY
 
 
 def _refuse_smuggling(app: Any) -> Any:
