@@ -8,6 +8,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import httpx
 import numpy as np
 import pytest
 import zarr
@@ -195,3 +196,49 @@ def test_the_command_keeps_blas_to_one_thread_unless_the_user_set_it() -> None:
         [sys.executable, "-c", probe], capture_output=True, text=True, env=dict(os.environ), timeout=60
     )
     assert out.stdout.strip() == "False", out.stderr
+
+
+@pytest.mark.parametrize(
+    "refusal",
+    [
+        lambda: httpx.Response(503, text="Service Unavailable"),  # uvicorn at the connection cap
+        lambda: httpx.Response(
+            503, json={"error": "TooManyConnections", "detail": "this address already has 64"}
+        ),
+        lambda: (_ for _ in ()).throw(
+            httpx.RemoteProtocolError("Server disconnected without sending a response.")
+        ),
+    ],
+    ids=["cap", "per-address cap", "closed to make room"],
+)
+def test_a_request_the_server_never_served_is_tried_again_with_its_body(monkeypatch, refusal) -> None:
+    """The connection limits answer before the app (or close an idle connection to make room):
+    nothing was done, so the client tries again, the upload's body made afresh; a route's own
+    503 is not retried."""
+    from maxfs.service.cli import client as client_module
+    from maxfs.service.cli.client import MaxfsClient
+
+    monkeypatch.setattr(client_module, "RETRY_WAIT", 0.0)
+    seen: list[bytes] = []
+
+    def handler(request: httpx.Request) -> httpx.Response:
+        seen.append(request.read())
+        if len(seen) < 3:
+            return refusal()
+        return httpx.Response(200, json={"id": "j", "state": "created"})
+
+    c = MaxfsClient("http://fake")
+    c.http = httpx.Client(base_url="http://fake", transport=httpx.MockTransport(handler))
+    image = np.arange(12, dtype=np.uint16).reshape(3, 4)
+    assert c.upload_image("j", 0, image)["id"] == "j"
+    assert seen == [image.astype("<u2").tobytes()] * 3
+
+    def route_503(request: httpx.Request) -> httpx.Response:
+        seen.append(b"")
+        return httpx.Response(503, json={"error": "MaxfsError", "detail": "the cluster is starting"})
+
+    c.http = httpx.Client(base_url="http://fake", transport=httpx.MockTransport(route_503))
+    seen.clear()
+    with pytest.raises(Exception, match="cluster is starting"):
+        c.start("j")
+    assert len(seen) == 1

@@ -755,26 +755,29 @@ def test_tile_time_limit_stops_a_tile_and_fails_the_job(strict: Server, cluster:
 def test_connection_cap_makes_room_from_idle_connections_and_answers_503_when_all_are_busy(
     strict: Server,
 ) -> None:
-    """12 connections at most. Twelve that send nothing hold every slot, yet a newcomer is served:
-    it closes the oldest idle one. Eleven requests whose bodies the server is reading (a job
-    description arriving slowly) are busy, and then a newcomer gets 503 at once, not a hung
-    accept queue."""
+    """12 connections at most. Twelve that send nothing hold every slot: a newcomer gets 503 while
+    they are younger than connections.GRACE, and is served after (it closes the oldest). Eleven
+    requests whose bodies the server is reading (a job description arriving slowly) are busy,
+    and then a newcomer gets 503 at once, not a hung accept queue."""
     host, port = strict.url.removeprefix("http://").split(":")
     idle = [socket.create_connection((host, int(port))) for _ in range(12)]
     try:
         time.sleep(0.5)
+        # younger than connections.GRACE: maybe a client still sending its head, kept
+        assert httpx.get(strict.url + "/health", timeout=10).status_code == 503
+        time.sleep(1.0)
         assert httpx.get(strict.url + "/health", timeout=10).status_code == 200
     finally:
         for s in idle:
             s.close()
-    token = strict.token("busy")
-    head = (
-        f"POST /jobs HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer {token}\r\n"
-        "Content-Type: application/json\r\nContent-Length: 100000\r\n\r\n{"
-    ).encode()
+    tokens = [strict.token("busy1"), strict.token("busy2")]  # 6 and 5: under MAXFS_MAX_UPLOADS_PER_USER
     busy = []
     try:
-        for _ in range(11):
+        for i in range(11):
+            head = (
+                f"POST /jobs HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer {tokens[i % 2]}\r\n"
+                "Content-Type: application/json\r\nContent-Length: 100000\r\n\r\n{"
+            ).encode()
             s = socket.create_connection((host, int(port)))
             s.sendall(head)
             busy.append(s)

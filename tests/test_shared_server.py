@@ -169,25 +169,54 @@ def test_a_body_nobody_reads_cannot_hold_the_connection(server: Server, what: st
 
 @pytest.mark.slow
 def test_idle_connections_make_room_for_newcomers_at_the_cap(server: Server) -> None:
-    """160 silent connections from four addresses (40 each, under the per-address cap of 50;
-    together above MAXFS_MAX_CONNECTIONS=150), reopened as fast as they close, hold every slot;
-    a newcomer closes the oldest idle one instead of getting 503. Measured within the 2 s head
-    deadline, so the deadline is not what frees the slots."""
+    """160 connections from four addresses (40 each, under the per-address cap of 50; together
+    above MAXFS_MAX_CONNECTIONS=150), each answered and still sending a body nobody reads,
+    reopened as fast as they close, hold every slot; a newcomer closes one of them instead of
+    getting 503. Measured within the 2 s deadline of those bodies, so the deadline is not what
+    frees the slots."""
     sources = ["127.0.0.3", "127.0.0.4", "127.0.0.5", "127.0.0.6"]
     headers = {"Authorization": f"Bearer {server.tokens['alice']}"}
-    socks = [
-        socket.create_connection(_addr(server), timeout=10, source_address=(sources[i % 4], 0))
-        for i in range(160)
-    ]
+    head = b"GET /health HTTP/1.1\r\nHost: x\r\nTransfer-Encoding: chunked\r\n\r\n1\r\nx\r\n"
+    socks = []
     try:
+        for i in range(160):
+            s = socket.create_connection(_addr(server), timeout=10, source_address=(sources[i % 4], 0))
+            s.sendall(head)
+            socks.append(s)
+        time.sleep(0.2)  # answered: their bodies are what nobody reads
         t0 = time.monotonic()
         codes = [httpx.get(server.url + "/jobs", headers=headers, timeout=10).status_code for _ in range(10)]
         took = time.monotonic() - t0
     finally:
         for s in socks:
             s.close()
-    assert took < 1.5, f"too slow to tell the cap from the head deadline: {took:.1f} s"
+    assert took < 1.5, f"too slow to tell the cap from the body deadline: {took:.1f} s"
     assert codes == [200] * 10, codes
+
+
+@pytest.mark.slow
+def test_one_token_cannot_hold_more_than_its_share_of_slow_job_descriptions(server: Server) -> None:
+    """A job description being read holds a busy connection (never closed to make room), so one
+    token may have MAXFS_MAX_UPLOADS_PER_USER (8) arriving at once; the ninth gets 429 at once."""
+    token = server.tokens["carol"]
+    head = (
+        f"POST /jobs HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer {token}\r\n"
+        "Content-Type: application/json\r\nContent-Length: 100000\r\n\r\n{"
+    ).encode()
+    socks = []
+    try:
+        for _ in range(8):
+            s = socket.create_connection(_addr(server), timeout=10)
+            s.sendall(head)
+            socks.append(s)
+        time.sleep(0.3)
+        with socket.create_connection(_addr(server), timeout=10) as s:
+            s.sendall(head)
+            out, _ = _read_all(s, 5)
+    finally:
+        for s in socks:
+            s.close()
+    assert out.startswith(b"HTTP/1.1 429") and b"MAXFS_MAX_UPLOADS_PER_USER" in out, out[:300]
 
 
 # -- 2. request smuggling -----------------------------------------------------------------------

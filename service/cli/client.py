@@ -89,6 +89,23 @@ def upload_batches(missing: list[int], nbytes: int, limit: int = BATCH_BYTES) ->
     return out
 
 
+#: Tries again of a request the server never served (:meth:`MaxfsClient._call`), waiting
+#: ``RETRY_WAIT * 2**n`` seconds before the n-th (0.25 .. 2 s, 3.75 s in all).
+RETRIES = 4
+RETRY_WAIT = 0.25
+
+
+def _never_served(r: httpx.Response) -> bool:
+    """Whether a 503 came from the server's connection limits rather than from a route: uvicorn's
+    plain-text answer at the connection cap, or the per-address cap's ``TooManyConnections``."""
+    if not r.headers.get("content-type", "").startswith("application/json"):
+        return True
+    try:
+        return r.json().get("error") == "TooManyConnections"
+    except ValueError:
+        return False
+
+
 class MaxfsClient:
     """Talks to one server. Errors come back as the server's :class:`MaxfsError` classes."""
 
@@ -105,8 +122,27 @@ class MaxfsClient:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    def _call(self, method: str, url: str, **kw: Any) -> httpx.Response:
-        r = self.http.request(method, url, **kw)
+    def _call(
+        self, method: str, url: str, *, body: Callable[[], Any] | None = None, **kw: Any
+    ) -> httpx.Response:
+        """One request; ``body()`` makes its content afresh for each try. A request the server
+        never let reach the app (its connection cap's 503, or a connection it closed before an
+        answer to make room for others) is tried again after a short wait, up to
+        :data:`RETRIES` times: nothing of it was done, so even a POST is safe to repeat."""
+        for attempt in range(RETRIES + 1):
+            if body is not None:
+                kw["content"] = body()
+            try:
+                r = self.http.request(method, url, **kw)
+            except (httpx.RemoteProtocolError, httpx.ReadError, httpx.ConnectError):
+                if attempt == RETRIES:
+                    raise
+                time.sleep(RETRY_WAIT * 2**attempt)
+                continue
+            if r.status_code == 503 and _never_served(r) and attempt < RETRIES:
+                time.sleep(RETRY_WAIT * 2**attempt)
+                continue
+            break
         if r.status_code >= 400:
             from pydantic import ValidationError
 
@@ -137,7 +173,7 @@ class MaxfsClient:
         return self._call(
             "PUT",
             f"/jobs/{job_id}/images/{index}",
-            content=pieces(),
+            body=pieces,
             headers={"Content-Type": "application/octet-stream", "Content-Length": str(arr.nbytes)},
         ).json()
 
@@ -152,7 +188,7 @@ class MaxfsClient:
             "PUT",
             f"/jobs/{job_id}/images",
             params={"first": first, "count": len(arrs)},
-            content=(a.tobytes() for a in arrs),
+            body=lambda: (a.tobytes() for a in arrs),
             headers={
                 "Content-Type": "application/octet-stream",
                 "Content-Length": str(sum(a.nbytes for a in arrs)),

@@ -17,11 +17,14 @@ connections that send a head slowly, or nothing, hold every slot and everyone el
 - a cap on open connections per client address (``MAXFS_MAX_CONNECTIONS_PER_CLIENT``):
   beyond it a new connection gets a 503 and is closed before anything is read;
 - room for newcomers: when every slot (``MAXFS_MAX_CONNECTIONS``) is taken, a new connection
-  closes the oldest one that is doing nothing for anyone (no request head yet, idle between
-  requests, or answered and still sending a body nobody reads) instead of getting the 503. A
-  request in progress, or an upload being read, is never closed for it. Without this, clients
-  on many addresses reopening such connections as fast as they were closed kept every slot
-  (the deadlines above close each within seconds, not before the next one arrives);
+  closes one that is doing nothing for anyone instead of getting the 503, in this order: one
+  answered and still sending a body nobody reads; one whose reader has taken nothing of its
+  answer for :data:`STALLED` seconds; one without a whole request head after :data:`GRACE`
+  seconds; one idle between requests for :data:`GRACE` seconds (oldest first within each). A
+  connection younger than that (a client that has just connected and is sending its head) and
+  a request being served are never closed for it. Without this, clients on many addresses
+  reopening such connections as fast as they were closed kept every slot (the deadlines above
+  close each within seconds, not before the next one arrives);
 - request smuggling refused (RFC 9112 section 6.1): a request with both ``Content-Length`` and
   ``Transfer-Encoding`` gets 400 and the connection is closed, so nothing pipelined behind it
   (or hidden in its body) is answered.
@@ -38,6 +41,13 @@ import h11
 from uvicorn.protocols.http.h11_impl import H11Protocol
 
 log = logging.getLogger("maxfs.connections")
+
+#: Seconds a connection may wait for its head, or between requests, before it can be closed to
+#: make room at the connection cap (a client sends its head within milliseconds of connecting).
+GRACE = 1.0
+#: Seconds without its reader taking anything of the answer before a connection can be closed
+#: to make room (a slow link drains its buffer many times a second).
+STALLED = 5.0
 
 
 def _raw_answer(status: int, reason: str, detail: str, error: str) -> bytes:
@@ -86,6 +96,8 @@ def guarded_protocol(header_timeout: float, per_client: int) -> type[H11Protocol
         head_timer: asyncio.TimerHandle | None = None
         counted: str | None = None
         opened: float = 0.0
+        quiet_since: float = 0.0  # when it last started waiting for a head (opened, or answered)
+        stalled_since: float | None = None  # the reader stopped taking the answer (writes paused)
 
         def __init__(self, *args: Any, **kw: Any) -> None:
             super().__init__(*args, **kw)
@@ -93,7 +105,7 @@ def guarded_protocol(header_timeout: float, per_client: int) -> type[H11Protocol
 
         def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
             super().connection_made(transport)
-            self.opened = self.loop.time()
+            self.opened = self.quiet_since = self.loop.time()
             host = self.client[0] if self.client else ""
             if per_client and open_per_client.get(host, 0) >= per_client:
                 transport.write(full)
@@ -105,16 +117,29 @@ def guarded_protocol(header_timeout: float, per_client: int) -> type[H11Protocol
             self._make_room()
 
         def _make_room(self) -> None:
-            """At the connection cap, close the oldest idle ones (:meth:`idle`) so that this one
-            is served: uvicorn answers 503 to a request that arrives while the cap is reached."""
+            """At the connection cap, close idle ones (:func:`_idle_rank`) so that this one is
+            served: uvicorn answers 503 to a request that arrives while the cap is reached."""
             limit = self.limit_concurrency
             over = len(self.connections) - limit + 1 if limit else 0
             if over <= 0:
                 return
-            idle = sorted((p for p in self.connections if p is not self and _idle(p)), key=lambda p: p.opened)
-            for p in idle[:over]:
+            now = self.loop.time()
+            ranked = sorted(
+                (r, p.opened, id(p), p)
+                for p in self.connections
+                if p is not self and (r := _idle_rank(p, now)) is not None
+            )
+            for *_, p in ranked[:over]:
                 log.info("closed an idle connection from %s to make room at the connection cap", p.counted)
                 p.transport.close()
+
+        def pause_writing(self) -> None:
+            super().pause_writing()
+            self.stalled_since = self.loop.time()
+
+        def resume_writing(self) -> None:
+            super().resume_writing()
+            self.stalled_since = None
 
         def connection_lost(self, exc: Exception | None) -> None:
             if self.counted is not None:
@@ -129,6 +154,7 @@ def guarded_protocol(header_timeout: float, per_client: int) -> type[H11Protocol
 
         def on_response_complete(self) -> None:
             super().on_response_complete()
+            self.quiet_since = self.loop.time()
             if not self.transport.is_closing():
                 self._arm_head_timer()  # the next head has the same deadline
 
@@ -164,15 +190,23 @@ def guarded_protocol(header_timeout: float, per_client: int) -> type[H11Protocol
     return GuardedProtocol
 
 
-def _idle(p: Any) -> bool:
-    """Whether connection ``p`` does nothing for anyone: no request head yet or idle between
-    requests (no request in progress), or answered and still sending a body nobody reads."""
+def _idle_rank(p: Any, now: float) -> int | None:
+    """How readily connection ``p`` may be closed to make room (lower first), None if never:
+    0 answered and still sending a body nobody reads, 1 its reader has taken nothing of the
+    answer for :data:`STALLED` s, 2 no whole request head after :data:`GRACE` s, 3 idle between
+    requests for :data:`GRACE` s."""
     if not isinstance(p, H11Protocol) or p.transport is None or p.transport.is_closing():
-        return False
+        return None
     c = p.conn
-    if c.their_state is h11.IDLE:
-        return p.cycle is None or p.cycle.response_complete
-    return c.our_state is h11.DONE and c.their_state is h11.SEND_BODY
+    if c.our_state is h11.DONE and c.their_state is h11.SEND_BODY:
+        return 0
+    stalled = getattr(p, "stalled_since", None)
+    if stalled is not None and now - stalled >= STALLED:
+        return 1
+    quiet = now - getattr(p, "quiet_since", now) >= GRACE
+    if c.their_state is h11.IDLE and quiet and (p.cycle is None or p.cycle.response_complete):
+        return 2 if p.cycle is None else 3
+    return None
 
 
 def _refuse_smuggling(app: Any) -> Any:

@@ -77,18 +77,19 @@ async def body_chunks(
 ) -> AsyncIterator[bytes]:
     """The body in the pieces it arrives in: 413 past ``limit`` bytes, 408 when nothing
     arrives for ``idle_timeout`` seconds or when, after those first seconds, the body has
-    averaged fewer than ``min_rate`` bytes per second (``n`` bytes are due ``idle_timeout + n /
-    min_rate`` seconds after the start: a byte every few seconds is never idle, and would hold
-    a connection and an upload slot for days), :class:`ClientGoneError` when the client hangs up."""
+    averaged fewer than ``min_rate`` bytes per second since it began (more than ``n`` bytes are
+    due ``max(idle_timeout, n / min_rate)`` seconds after the start: a byte every few seconds is
+    never idle, and would hold a connection and an upload slot for days),
+    :class:`ClientGoneError` when the client hangs up."""
     check_declared(request, limit)
     stream = request.stream().__aiter__()
     loop = asyncio.get_running_loop()
-    start = loop.time()
+    start = last = loop.time()
     n = 0
     while True:
         wait = idle_timeout
         if min_rate > 0:  # the time by which more than n bytes must have arrived
-            wait = min(wait, start + idle_timeout + n / min_rate - loop.time())
+            wait = min(wait, start + max(idle_timeout, n / min_rate) - loop.time())
         try:
             # a timeout scope per piece, not wait_for's task per piece (a 2 MB body comes in
             # 30-40 pieces)
@@ -97,7 +98,7 @@ async def body_chunks(
         except StopAsyncIteration:
             return
         except TimeoutError:
-            if wait < idle_timeout:
+            if loop.time() - last < 0.99 * idle_timeout:  # bytes came lately, but too few
                 raise RequestTimeoutError(
                     f"the body arrives too slowly: {n} bytes in {loop.time() - start:.0f} s, less "
                     f"than {min_rate:g} bytes per second (MAXFS_UPLOAD_MIN_RATE); send it again "
@@ -110,6 +111,7 @@ async def body_chunks(
         except ClientDisconnect:
             raise ClientGoneError(f"the client closed the connection after {n} bytes of the body") from None
         n += len(chunk)
+        last = loop.time()
         if n > limit:
             raise PayloadTooLargeError(f"body is larger than the {limit} bytes this request allows")
         yield chunk
@@ -279,6 +281,9 @@ class RequestGuard:
 
     def __init__(self, app: Any, *, settings: Any, tokens: Any) -> None:
         self.app, self.settings, self.tokens = app, settings, tokens
+        # job descriptions being read, per token: each holds a connection while it arrives, and
+        # a busy connection is never closed to make room (service.http.connections)
+        self.reading: dict[str, int] = {}
 
     async def __call__(self, scope: dict, receive: Any, send: Any) -> None:
         if scope["type"] != "http" or not (scope["path"] == "/jobs" or scope["path"].startswith("/jobs/")):
@@ -296,11 +301,25 @@ class RequestGuard:
                     raise AuthError("the API token is not valid (mistyped or revoked); ask for a new one")
             if scope["method"] == "POST" and scope["path"].rstrip("/") == "/jobs":
                 s = self.settings
-                body = await read_body(request, s.max_json_bytes, s.upload_idle_timeout, s.upload_min_rate)
+                who = request.headers.get("authorization", "")
+                if self.reading.get(who, 0) >= s.max_uploads_per_user:
+                    raise QuotaError(
+                        f"this token already has {s.max_uploads_per_user} job descriptions arriving "
+                        "(MAXFS_MAX_UPLOADS_PER_USER); send one when another has arrived"
+                    )
+                self.reading[who] = self.reading.get(who, 0) + 1
+                try:
+                    body = await read_body(
+                        request, s.max_json_bytes, s.upload_idle_timeout, s.upload_min_rate
+                    )
+                finally:
+                    self.reading[who] -= 1
+                    if not self.reading[who]:
+                        del self.reading[who]
                 # parsed in a thread: a large or deeply nested body must not stall other requests
                 await asyncio.to_thread(_check_k, body, s.max_k)
                 receive = _replay(body, receive)
-        except (AuthError, InvalidInputError, RequestTimeoutError, ClientGoneError) as e:
+        except (AuthError, InvalidInputError, RequestTimeoutError, ClientGoneError, QuotaError) as e:
             if isinstance(e, ClientGoneError):
                 log.info("%s %s: %s", scope["method"], scope["path"], e)
             return await error_response(e)(scope, receive, send)

@@ -57,6 +57,9 @@ TEMP_PREFIX = ".maxfs-"
 UPLOAD_STORES = 64
 #: The longest a status request may wait for a job's record to change (``GET /jobs/{id}?wait=S``).
 MAX_STATUS_WAIT = 30.0
+#: Status requests one user may have waiting at once (``?wait=``); beyond, they answer at once: a
+#: waiting request holds a connection that is never closed to make room (service.http.connections).
+MAX_WAITS_PER_USER = 8
 
 
 def owns(user: User, rec: JobRecord) -> bool:
@@ -133,6 +136,7 @@ class JobManager:
         #: per job, the event that status requests waiting for its next change wait on
         #: (:meth:`wait_change`); set and dropped by :meth:`changed`
         self.changes: dict[str, asyncio.Event] = {}
+        self.waiting: dict[str, int] = {}  # status requests waiting, per user (MAX_WAITS_PER_USER)
         self.loop: asyncio.AbstractEventLoop | None = None
 
     # -- life cycle ---------------------------------------------------------------------------
@@ -242,13 +246,18 @@ class JobManager:
         The event is taken before the record is read, so a change made meanwhile is not missed."""
         self.access(job_id, user)  # the id checked and the job the user's before anything is kept
         ev = self.changes.setdefault(job_id, asyncio.Event())
-        if not self.record(job_id).state.active:
+        if not self.record(job_id).state.active or self.waiting.get(user.name, 0) >= MAX_WAITS_PER_USER:
             return
+        self.waiting[user.name] = self.waiting.get(user.name, 0) + 1
         try:
             async with asyncio.timeout(min(timeout, MAX_STATUS_WAIT)):
                 await ev.wait()
         except TimeoutError:
             pass
+        finally:
+            self.waiting[user.name] -= 1
+            if not self.waiting[user.name]:
+                del self.waiting[user.name]
 
     # -- limits (service.http.quotas), here so that callers need only the manager ------------------
     def open_jobs(self, user: User) -> int:
