@@ -161,6 +161,10 @@ class UploadSlots:
         self.per_user, self.what, self.setting = per_user, what, setting
         self.busy: dict[str, int] = {}
 
+    def full(self, user: str) -> bool:
+        """Whether ``user`` has no slot left (:meth:`take` would refuse)."""
+        return self.busy.get(user, 0) >= self.per_user
+
     @contextmanager
     def take(self, user: str) -> Iterator[None]:
         n = self.busy.get(user, 0)
@@ -281,9 +285,9 @@ class RequestGuard:
 
     def __init__(self, app: Any, *, settings: Any, tokens: Any) -> None:
         self.app, self.settings, self.tokens = app, settings, tokens
-        # job descriptions being read, per token: each holds a connection while it arrives, and
+        # job descriptions being read, per user: each holds a connection while it arrives, and
         # a busy connection is never closed to make room (service.http.connections)
-        self.reading: dict[str, int] = {}
+        self.reading = UploadSlots(settings.max_uploads_per_user, "job descriptions arriving")
 
     async def __call__(self, scope: dict, receive: Any, send: Any) -> None:
         if scope["type"] != "http" or not (scope["path"] == "/jobs" or scope["path"].startswith("/jobs/")):
@@ -297,25 +301,15 @@ class RequestGuard:
                         "this server needs an API token: send 'Authorization: Bearer <token>' "
                         "(an administrator makes one with `maxfs token create NAME`)"
                     )
-                if self.tokens.authenticate(token.strip()) is None:
+                user = self.tokens.authenticate(token.strip())
+                if user is None:
                     raise AuthError("the API token is not valid (mistyped or revoked); ask for a new one")
             if scope["method"] == "POST" and scope["path"].rstrip("/") == "/jobs":
                 s = self.settings
-                who = request.headers.get("authorization", "")
-                if self.reading.get(who, 0) >= s.max_uploads_per_user:
-                    raise QuotaError(
-                        f"this token already has {s.max_uploads_per_user} job descriptions arriving "
-                        "(MAXFS_MAX_UPLOADS_PER_USER); send one when another has arrived"
-                    )
-                self.reading[who] = self.reading.get(who, 0) + 1
-                try:
+                with self.reading.take(user.name if self.settings.auth else ""):
                     body = await read_body(
                         request, s.max_json_bytes, s.upload_idle_timeout, s.upload_min_rate
                     )
-                finally:
-                    self.reading[who] -= 1
-                    if not self.reading[who]:
-                        del self.reading[who]
                 # parsed in a thread: a large or deeply nested body must not stall other requests
                 await asyncio.to_thread(_check_k, body, s.max_k)
                 receive = _replay(body, receive)

@@ -13,6 +13,7 @@ Per-user and disk limits are checked before anything is stored (:mod:`service.ht
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import shutil
 import tempfile
@@ -125,6 +126,7 @@ class JobManager:
         self.disk = DiskBudget(self.root, s.min_free_bytes)
         self.uploads = UploadSlots(s.max_uploads_per_user)
         self.downloads = UploadSlots(s.max_downloads_per_user, "downloads", "MAXFS_MAX_DOWNLOADS_PER_USER")
+        self.waits = UploadSlots(MAX_WAITS_PER_USER, "status requests waiting")  # (wait_change)
         self.decoder = Decoder(s.decode_slots)
         #: quota and disk checks (service.http.quotas)
         self.limits = JobLimits(s, self.index, self.disk, self._record_or_none)
@@ -136,7 +138,6 @@ class JobManager:
         #: per job, the event that status requests waiting for its next change wait on
         #: (:meth:`wait_change`); set and dropped by :meth:`changed`
         self.changes: dict[str, asyncio.Event] = {}
-        self.waiting: dict[str, int] = {}  # status requests waiting, per user (MAX_WAITS_PER_USER)
         self.loop: asyncio.AbstractEventLoop | None = None
 
     # -- life cycle ---------------------------------------------------------------------------
@@ -246,18 +247,11 @@ class JobManager:
         The event is taken before the record is read, so a change made meanwhile is not missed."""
         self.access(job_id, user)  # the id checked and the job the user's before anything is kept
         ev = self.changes.setdefault(job_id, asyncio.Event())
-        if not self.record(job_id).state.active or self.waiting.get(user.name, 0) >= MAX_WAITS_PER_USER:
+        if not self.record(job_id).state.active or self.waits.full(user.name):
             return
-        self.waiting[user.name] = self.waiting.get(user.name, 0) + 1
-        try:
+        with self.waits.take(user.name), contextlib.suppress(TimeoutError):
             async with asyncio.timeout(min(timeout, MAX_STATUS_WAIT)):
                 await ev.wait()
-        except TimeoutError:
-            pass
-        finally:
-            self.waiting[user.name] -= 1
-            if not self.waiting[user.name]:
-                del self.waiting[user.name]
 
     # -- limits (service.http.quotas), here so that callers need only the manager ------------------
     def open_jobs(self, user: User) -> int:
