@@ -18,7 +18,7 @@ import pytest
 
 from maxfs.service.cli import client as client_mod
 from maxfs.service.cli.client import MaxfsClient
-from maxfs.service.http.jobs import JobManager
+from maxfs.service.http.jobs import MAX_WAITS_PER_USER, JobManager
 from maxfs.service.settings import Settings
 from maxfs.storage.errors import NotFoundError
 from maxfs.storage.layout import JobSpec
@@ -91,6 +91,38 @@ def test_a_wait_on_someone_elses_job_or_a_bad_id_is_not_found_and_keeps_nothing(
             with pytest.raises(NotFoundError):
                 await m.wait_change(jid, user, 1)
         assert not m.changes
+
+    asyncio.run(go())
+
+
+def test_one_user_holds_at_most_max_waits_waiting_status_requests(tmp_path: Path) -> None:
+    """A waiting status request holds a connection: one token must not hold them by the hundred.
+    Beyond :data:`MAX_WAITS_PER_USER` its requests answer at once (a plain status); another user's
+    still wait, and a slot freed by a change is usable again."""
+    m, job = _manager(tmp_path)
+    bob_job = m.create(
+        JobSpec(4, 8, 8, None, "uint8", synthetic.lights_uniform(4).tolist()), JobParams.build(eps=1.0), BOB
+    ).id
+
+    async def go() -> None:
+        m.loop = asyncio.get_running_loop()
+        _set_state(m, job, JobState.RUNNING)
+        _set_state(m, bob_job, JobState.RUNNING)
+        held = [asyncio.create_task(m.wait_change(job, ALICE, 30)) for _ in range(MAX_WAITS_PER_USER)]
+        await asyncio.sleep(0)
+        assert not any(t.done() for t in held)
+        await asyncio.wait_for(m.wait_change(job, ALICE, 30), 1)  # over the cap: at once
+        bob = asyncio.create_task(m.wait_change(bob_job, BOB, 30))
+        await asyncio.sleep(0)
+        assert not bob.done()  # his own slots
+        m.changed(job)
+        await asyncio.wait_for(asyncio.gather(*held), 5)
+        again = asyncio.create_task(m.wait_change(job, ALICE, 30))
+        await asyncio.sleep(0)
+        assert not again.done()  # the slots came back
+        m.changed(job)
+        m.changed(bob_job)
+        await asyncio.wait_for(asyncio.gather(again, bob), 5)
 
     asyncio.run(go())
 
