@@ -332,7 +332,7 @@ class JobStore:
                 "channels": C,
                 "dtype": spec.dtype,
                 "params": params.to_json(),
-                "params_hash": params.digest() if params.eps is not None else None,
+                "params_hash": params.digest() if params.resolved else None,
                 "lights_digest": lights_digest(spec),
             }
         )
@@ -371,14 +371,15 @@ class JobStore:
         """Record (possibly new) parameters; tiles made with others stop counting as done."""
         self.spec.check_params(params)
         self.group.update_attributes(
-            {"params": params.to_json(), "params_hash": params.digest() if params.eps is not None else None}
+            {"params": params.to_json(), "params_hash": params.digest() if params.resolved else None}
         )
 
     @property
     def observation_model(self) -> ObservationModel:
         s = self.spec
+        p = self.params
         return ObservationModel.for_input(
-            np.dtype(s.dtype), s.k, s.channels, s.intensities, dequantize=self.params.dequantize
+            np.dtype(s.dtype), s.k, s.channels, s.intensities, dequantize=p.dequantize, quantum=p.quantum or 1
         )
 
     # -- inputs -------------------------------------------------------------------------------
@@ -569,7 +570,7 @@ class JobStore:
         :meth:`write_empty_tile` ever writes there, so it needs no marker and no task. Reads the
         markers of the other tiles only (a chunk each)."""
         p = self.params
-        if p.eps is None:
+        if not p.resolved:
             return np.zeros(np.asarray(self._fixed("done").shape), dtype=bool)
         done = self.masked_per_tile() == 0
         ys, xs = np.nonzero(~done)
@@ -704,7 +705,7 @@ class JobStore:
     def tile_done(self, t: Tile) -> bool:
         """Whether tile ``t`` is finished with the current parameters."""
         p = self.params
-        return p.eps is not None and int(self._cells("done", [t.ty], [t.tx])[0]) == p.token()
+        return p.resolved and int(self._cells("done", [t.ty], [t.tx])[0]) == p.token()
 
     def progress(self) -> ProgressCounts:
         """Counts over the finished tiles, from the done grid and per-tile stats only."""

@@ -6,12 +6,18 @@ Every path (in-process solve, Dask tile tasks) goes through
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from maxfs.storage.errors import InvalidInputError
+
+#: A raw step above 1 is taken only when at least this many distinct non-zero values share it:
+#: data with steps of 1 put 8 distinct values on multiples of 2 by chance with odds 1/256, and
+#: data so dark that the sample holds fewer levels than that tell nothing (the 8-bit DiLiGenT
+#: pot1 crop at k = 8 holds 31).
+QUANTUM_EVIDENCE = 8
 
 #: Accepted light intensities: relative brightnesses; outside this range dividing the images by
 #: them under- or overflows what the tolerance and the response estimate can represent.
@@ -27,8 +33,8 @@ class ObservationModel:
     intensities
         (k, C) light intensities per image and channel (C = 1 for grey input).
     sensor_max
-        The dtype's maximum for integer input (a raw value there is saturated),
-        or None for float input.
+        For integer input the top of the data's grid: the largest multiple of ``quantum``
+        the dtype holds (a raw value there is saturated); None for float input.
     channels
         None for grey input, else the number of colour channels.
     dequantize
@@ -36,13 +42,23 @@ class ObservationModel:
         the interval ``[v, v + 1)`` it stands for when the sensor (or a conversion such as
         16 -> 8 bits by ``v >> 8``) truncates. Zero stays zero (a shadow); saturation
         is decided on the raw value. Measured on the 8-bit DiLiGenT crops: mean error
-        cat 7.1 -> 6.5, pot1 9.3 -> 7.7 (bench/accuracy.py).
+        cat 7.1 -> 6.5, pot1 9.3 -> 7.7 (bench/accuracy.py). With ``quantum`` q the
+        interval is ``[v, v + q)`` and ``v`` is read as ``v + q / 2``.
+    quantum
+        Integer input only: the raw values' step (:func:`raw_quantum`), 1 for data that
+        use every value of the dtype; 16 for 12-bit data shifted into 16 bits, 256 for
+        8-bit data shifted, 257 for 8-bit data scaled to 16 bits (``v * 257``). It sets
+        the dequantisation, the quantisation step (:attr:`step`) and the saturation level,
+        so a stack gives the same normals in any container its values fit.
     """
 
     intensities: NDArray[np.float64]
     sensor_max: float | None
     channels: int | None
     dequantize: bool = False
+    quantum: int = 1
+    #: the dtype's maximum for integer input (:meth:`with_quantum` puts the grid's top below it)
+    dtype_max: int | None = None
 
     @property
     def integer_valued(self) -> bool:
@@ -50,11 +66,11 @@ class ObservationModel:
 
     @property
     def step(self) -> float | None:
-        """One raw step in grey units (the median over images of ``mean_c 1/intensity``),
-        None for float input: the scale of the quantisation error."""
+        """One raw step in grey units (``quantum`` times the median over images of
+        ``mean_c 1/intensity``), None for float input: the scale of the quantisation error."""
         if self.sensor_max is None:
             return None
-        return float(np.median((1.0 / self.intensities).mean(axis=1)))
+        return self.quantum * float(np.median((1.0 / self.intensities).mean(axis=1)))
 
     @classmethod
     def for_input(
@@ -64,8 +80,10 @@ class ObservationModel:
         channels: int | None,
         intensities: ArrayLike | None = None,
         dequantize: bool = False,
+        quantum: int = 1,
     ) -> ObservationModel:
-        """Validate the light intensities and build the model for a stack."""
+        """Validate the light intensities and build the model for a stack (``quantum``:
+        the raw step, :func:`raw_quantum`; ignored for float input)."""
         C = channels or 1
         if intensities is None:
             inten = np.ones((k, C))
@@ -96,12 +114,23 @@ class ObservationModel:
             )
         dt = np.dtype(dtype)
         if np.issubdtype(dt, np.integer):
-            sensor_max: float | None = float(np.iinfo(dt).max)
+            top = int(np.iinfo(dt).max)
+            sensor_max: float | None = float(top)
         elif np.issubdtype(dt, np.floating):
-            sensor_max = None
+            sensor_max, top = None, 0
         else:
             raise InvalidInputError(f"images must be integer or float, got dtype {dt}")
-        return cls(inten, sensor_max, channels, bool(dequantize) and sensor_max is not None)
+        model = cls(inten, sensor_max, channels, bool(dequantize) and sensor_max is not None, 1, None)
+        return model if sensor_max is None else replace(model, dtype_max=top).with_quantum(quantum)
+
+    def with_quantum(self, quantum: int) -> ObservationModel:
+        """This model for raw values on a grid of step ``quantum`` (float input: itself)."""
+        if self.dtype_max is None:
+            return self
+        q = int(quantum)
+        if not 1 <= q <= self.dtype_max:
+            raise InvalidInputError(f"the raw step must be between 1 and {self.dtype_max}, got {q}")
+        return replace(self, quantum=q, sensor_max=float(self.dtype_max // q * q))
 
     def prepare(
         self, raw: NDArray, pixels: NDArray[np.intp] | None = None
@@ -120,8 +149,8 @@ class ObservationModel:
         v = _pixel_major(raw if self.channels is not None else raw[..., None], pixels)
         f = v.astype(np.float64)  # always a copy: ``v`` may be ``raw`` itself (one pixel)
         if self.dequantize:
-            # + 0.5 where v > 0 (adding 0.0 elsewhere, as before, changed nothing)
-            np.add(f, 0.5, out=f, where=v > 0)
+            # + q/2 where v > 0 (adding 0.0 elsewhere, as before, changed nothing)
+            np.add(f, 0.5 * self.quantum, out=f, where=v > 0)
         f /= self.intensities[None, :, :]
         # grey input: the one channel itself (a view; x / 1 is x); colour: grey is a new array
         grey = f.reshape(f.shape[:2]) if self.channels is None else _channel_mean(f)
@@ -136,6 +165,26 @@ class ObservationModel:
             for c in range(1, C):
                 saturated |= v[..., c] >= self.sensor_max
         return grey, rgb, saturated
+
+
+def raw_quantum(raw: NDArray) -> int:
+    """The step of integer raw values: their greatest common divisor, or 1.
+
+    Cameras with 10, 12 or 14 bits often store them in 16-bit files shifted left (every
+    value a multiple of 64, 16 or 4), and 8-bit data converted to 16 bits are multiples of
+    256 (shifted) or 257 (scaled). Such a stack quantises as coarsely as its source: its
+    truncation error is up to a whole step, not one unit, and it saturates at the grid's
+    top (65520 for 12 bits shifted). A step above 1 needs :data:`QUANTUM_EVIDENCE` distinct
+    non-zero values sharing it; float input, or too little evidence, gives 1.
+    """
+    a = np.asarray(raw)
+    if not np.issubdtype(a.dtype, np.integer):
+        return 1
+    q = int(np.gcd.reduce(a, axis=None)) if a.size else 0
+    if q <= 1:
+        return 1
+    distinct = np.unique(a)
+    return q if int(np.count_nonzero(distinct)) >= QUANTUM_EVIDENCE else 1
 
 
 def _pixel_major(vals: NDArray, pixels: NDArray[np.intp] | None = None) -> NDArray:

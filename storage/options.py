@@ -119,6 +119,7 @@ class Estimate:
     eps: float  # tolerance, intensity units
     response: float  # g of I = (L.n)^g
     sigma: float  # robust noise sigma the eps came from (0 when eps was given)
+    quantum: int = 1  # the raw values' step (storage.observations.raw_quantum)
 
 
 def _finite_number(name: str, value: object) -> float:

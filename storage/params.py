@@ -54,7 +54,10 @@ class JobParams:
     ``eps`` is the number used; ``eps_request`` is what the user asked for
     (a number, or ``"auto"``, resolved before any tile runs). ``response`` and
     ``response_request`` likewise; both are resolved together, so ``eps`` is None
-    until everything ``"auto"`` is (see :meth:`with_eps`). The model's options
+    until everything ``"auto"`` is (see :meth:`with_eps`). ``quantum``, the raw values'
+    step (:func:`storage.observations.raw_quantum`), is measured on the data when the job
+    starts, whatever was asked: None until then; 1 in records made before it existed, which
+    is what they used. The job is :attr:`resolved` when both are known. The model's options
     (``model`` and the five after it) are stored resolved: the defaults of
     :data:`worker.problem.MODEL_DEFAULTS` are filled in by :meth:`build`.
     """
@@ -75,6 +78,7 @@ class JobParams:
     drop_bright: float = 0.0
     dequantize: bool = False
     fallback: bool = False
+    quantum: int | None = 1
     depth: str = DepthMethod.LS.value
     depth_k: float = DEFAULT_DEPTH_K
     fx: float | None = None
@@ -166,6 +170,7 @@ class JobParams:
             drop_bright=float(d.drop_bright if drop_bright is None else drop_bright),
             dequantize=bool(d.dequantize if dequantize is None else dequantize),
             fallback=bool(d.fallback if fallback is None else fallback),
+            quantum=None,
             depth=str(depth),
             depth_k=float(depth_k),
             **{
@@ -175,23 +180,34 @@ class JobParams:
             distance=None if distance is None else float(distance),
         )
 
+    @property
+    def resolved(self) -> bool:
+        """Whether everything measured when the job starts is known (eps, response, quantum):
+        only then do the parameters have a :meth:`digest` and tiles run."""
+        return self.eps is not None and self.quantum is not None
+
     def with_eps(self, eps: float | Estimate) -> JobParams:
-        """Resolved parameters: an :class:`~worker.noise.Estimate` sets eps and the
-        response; a number sets eps (the response must not be ``"auto"`` then)."""
+        """Resolved parameters: an :class:`~worker.noise.Estimate` sets eps, the response and
+        the raw step; a number sets eps (the response must not be ``"auto"`` then) and takes
+        the raw values as they are (step 1) where the step is not known yet."""
         if isinstance(eps, Estimate):
-            return replace(self, eps=float(eps.eps), response=float(eps.response))
+            return replace(self, eps=float(eps.eps), response=float(eps.response), quantum=int(eps.quantum))
         if self.response is None and self.response_request == "auto":
             raise InvalidInputError("the response is 'auto': resolve it with an Estimate")
         resp = self.response if self.response is not None else float(self.response_request)
-        return replace(self, eps=float(eps), response=resp)
+        return replace(
+            self, eps=float(eps), response=resp, quantum=1 if self.quantum is None else self.quantum
+        )
 
     def unresolved(self) -> JobParams:
-        """These parameters as :meth:`build` made them, before anything ``"auto"`` was resolved."""
+        """These parameters as :meth:`build` made them, before anything ``"auto"`` was resolved
+        and the raw step measured."""
         auto = self.eps_request == "auto" or self.response_request == "auto"
         return replace(
             self,
             eps=None if auto else self.eps,
             response=None if self.response_request == "auto" else self.response,
+            quantum=None,
         )
 
     def threshold_options(self) -> dict[str, Any]:
@@ -218,10 +234,13 @@ class JobParams:
     def digest(self) -> str:
         """Hash of the parameters that change results (needs a resolved eps): every field
         but what the user asked for (:data:`REQUEST_FIELDS`) and the depth's (:data:`DEPTH_FIELDS`),
-        since a resolved eps of 7.0 gives the same tiles whether it was asked for or estimated."""
-        if self.eps is None:
-            raise InvalidInputError("eps is not resolved yet")
+        since a resolved eps of 7.0 gives the same tiles whether it was asked for or estimated. A raw
+        step of 1 is left out too: records made before it existed keep their finished tiles."""
+        if not self.resolved:
+            raise InvalidInputError("eps and the raw step are not resolved yet")
         fields = {k: v for k, v in self.to_json().items() if k not in REQUEST_FIELDS | DEPTH_FIELDS}
+        if fields["quantum"] == 1:
+            del fields["quantum"]
         blob = json.dumps(fields, sort_keys=True).encode()
         return hashlib.sha256(blob).hexdigest()[:16]
 

@@ -111,6 +111,9 @@ class JobRecord:
     solved_pixels: int = 0  # ... that got a normal
     pixel_rate: float | None = None  # pixels per second in this run
     eps: float | None = None
+    #: the raw values' step measured when the job started (storage.observations.raw_quantum):
+    #: 16 for 12-bit data shifted into 16-bit files; None before the start
+    raw_step: int | None = None
     owner_uid: str = ""  # the owner's token identity (storage.tokens): a re-created name is someone else
     label: str | None = None  # the client's name for the submission (maxfs submit resumes by it)
     name: str | None = None  # what people call the job: the dataset folder's name unless given

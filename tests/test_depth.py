@@ -277,10 +277,10 @@ def test_perspective_mesh_is_in_the_camera_frame() -> None:
 
 
 def test_depth_options_are_validated_and_kept_out_of_the_tile_digest() -> None:
-    base = JobParams.build(eps=1.0)
+    base = JobParams.build(eps=1.0).with_eps(1.0)
     p = JobParams.build(
         eps=1.0, depth="bini", depth_k=4.0, fx=500.0, fy=500.0, cx=31.5, cy=31.5, distance=2.0
-    )
+    ).with_eps(1.0)
     assert p.digest() == base.digest() and p.depth == "bini" and p.fx == 500.0
     assert JobParams.from_json(p.to_json()) == p
     old = {k: v for k, v in base.to_json().items() if k not in ("depth", "depth_k", "fx", "fy", "cx", "cy")}

@@ -56,7 +56,9 @@ def test_threads_and_dask_cluster_give_identical_stores_and_finished_jobs_do_not
     sc = synthetic.bump_scene(10, 80, seed=5)
     mask = sc.mask.copy()
     mask[:, :40] = False  # tiles with no masked pixel are skipped, not solved
-    folder = write_npy_folder(tmp_path / "in", sc.images.astype(np.uint8), sc.lights, mask)
+    # 12-bit values shifted into 16-bit files: both paths measure and use the raw step
+    stack = sc.images.astype(np.uint8).astype(np.uint16) << 4
+    folder = write_npy_folder(tmp_path / "in", stack, sc.lights, mask)
     threads = _run(folder, tmp_path / "threads.zarr", "--workers", "2")
     assert threads.returncode == 0, threads.stderr
     assert "tiles" in _phases(threads.stderr) and "cluster run (tiles)" not in _phases(threads.stderr)
@@ -78,6 +80,8 @@ def test_threads_and_dask_cluster_give_identical_stores_and_finished_jobs_do_not
     for name in ARRAYS:
         np.testing.assert_array_equal(a[name][...], b[name][...], err_msg=name)
     store = JobStore.open(tmp_path / "threads.zarr", mode="r")
+    assert store.params == JobStore.open(tmp_path / "dask.zarr", mode="r").params
+    assert store.params.quantum == 16 and "(raw values in steps of 16)" in threads.stdout
     assert store.input_identity() == JobStore.open(tmp_path / "dask.zarr", mode="r").input_identity()
     before = store.run_counts()
     # each tile with masked pixels ran once; the others are done without a task or a write

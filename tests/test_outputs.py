@@ -19,7 +19,7 @@ from maxfs.worker.solve import solve_tile
 def _store(tmp_path: Path, channels: int | None, mask: np.ndarray | None = None) -> JobStore:
     sc = synthetic.sphere(k=6, size=24)
     spec = JobSpec(6, 24, 24, channels, "uint8", sc.lights)
-    store = JobStore.create(tmp_path / "job", spec, JobParams.build(eps=1.0, tile=16))
+    store = JobStore.create(tmp_path / "job", spec, JobParams.build(eps=1.0, tile=16).with_eps(1.0))
     if mask is not None:
         store.write_mask(mask)
     return store

@@ -87,7 +87,7 @@ def test_http_job_equals_in_process_solver(
         assert st["state"] == "done", st
         assert st["progress"]["fraction"] == 1.0
         assert st["progress"]["certified_share"] == 1.0
-        assert st["eps"] == data.exact_ref.eps
+        assert st["eps"] == data.exact_ref.eps and st["raw_step"] == 1  # measured when it started
         out = c.fetch_zarr(job_id, tmp_path / "fetched.zarr")
         g = zarr.open_group(out / "results.zarr", mode="r")
         _assert_equal({n: g[n][...] for n in OUTPUTS}, data.exact_ref)

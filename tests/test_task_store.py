@@ -18,7 +18,7 @@ from maxfs.worker.task import TileStatus, open_store, run_tile
 def _store(path: Path, eps: float = 2.0) -> JobStore:
     sc = synthetic.bump_scene(6, 16)
     spec = JobSpec(6, 16, 16, None, "uint8", sc.lights)
-    store = JobStore.create(path, spec, JobParams.build(eps=eps, tile=8))
+    store = JobStore.create(path, spec, JobParams.build(eps=eps, tile=8).with_eps(eps))
     for i, img in enumerate(sc.images.astype(np.uint8)):
         store.write_image(i, img)
     return store

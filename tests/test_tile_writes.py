@@ -152,7 +152,7 @@ def test_regions_that_are_not_one_chunk_and_other_codecs_are_left_to_zarr(tmp_pa
 
 def _store(path: Path, channels: int | None, h: int = 37, w: int = 29, tile: int = 16) -> JobStore:
     spec = JobSpec(K, h, w, channels, "uint16", synthetic.lights_uniform(K))
-    return JobStore.create(path, spec, JobParams.build(eps=2.0, tile=tile))
+    return JobStore.create(path, spec, JobParams.build(eps=2.0, tile=tile).with_eps(2.0))
 
 
 def _results(store: JobStore, t: Tile, seed: int) -> dict[str, np.ndarray]:

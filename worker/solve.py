@@ -14,13 +14,13 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from maxfs.storage.errors import InvalidInputError
-from maxfs.storage.observations import ObservationModel
+from maxfs.storage.observations import ObservationModel, raw_quantum
 from maxfs.storage.options import (
     DEFAULT_BOX_FACTOR,
     DEFAULT_EPS,
@@ -212,7 +212,9 @@ def estimate_job(
     model: Model | str = Model.PAPER,
 ) -> Estimate:
     """Resolve ``"auto"`` eps and response (:func:`worker.noise.estimate_model`) on the
-    fixed sample of :func:`eps_sample`.
+    fixed sample of :func:`eps_sample`, and the raw values' step there
+    (:func:`storage.observations.raw_quantum`; ``obs`` is the model before it is known,
+    its step 1): the estimate is made with the step, and records it.
 
     ``read_block(window)`` returns the raw block ``(k, h, w[, C])`` of a window (a
     :class:`Tile` that need not be on the tile grid), so the in-process and the service
@@ -224,11 +226,14 @@ def estimate_job(
             raise InvalidInputError(f"{name} must be a positive number or 'auto', got {v!r}")
     picks = eps_sample(shape, mask)
     if not picks:
-        raise InvalidInputError("cannot estimate eps: the mask selects no pixel; give eps explicitly")
+        if eps == "auto" or response == "auto":
+            raise InvalidInputError("cannot estimate eps: the mask selects no pixel; give eps explicitly")
+        return Estimate(float(eps), float(response), 0.0)  # nothing to solve, nor to measure
     raw = np.concatenate([read_block(t)[:, ys, xs] for t, ys, xs in picks], axis=1)
+    obs = obs.with_quantum(raw_quantum(raw))
     grey, _, saturated = obs.prepare(raw)
     ok = np.isfinite(grey) & (grey > 0) & ~saturated
-    return estimate_model(
+    est = estimate_model(
         grey,
         ok,
         L,
@@ -238,6 +243,7 @@ def estimate_job(
         drop_bright=drop_bright,
         by_intensity=MODEL_DEFAULTS[Model(model)].noise_by_intensity,
     )
+    return replace(est, quantum=obs.quantum)
 
 
 def estimate_job_eps(
@@ -418,6 +424,7 @@ def _inactive_fill(obs: ObservationModel, L, th: Thresholds, solver, k: int, C: 
         obs.sensor_max,
         obs.channels,
         obs.dequantize,
+        obs.quantum,
         Lf.tobytes(),
         Lf.shape,
         tuple(
@@ -516,21 +523,20 @@ def solve(
         m = np.asarray(mask, dtype=bool)
         if m.shape != (H, W):
             raise InvalidInputError(f"mask has shape {m.shape}, images are {H} x {W}")
-    if isinstance(eps, str) or isinstance(resp, str):
-        est = estimate_job(
-            lambda t: arr[:, t.y0 : t.y1, t.x0 : t.x1],
-            L,
-            obs,
-            m,
-            (H, W),
-            eps=eps,
-            response=resp,
-            drop_bright=defaults.drop_bright if drop_bright is None else drop_bright,
-            model=model,
-        )
-        eps_v, resp_v = est.eps, est.response
-    else:
-        eps_v, resp_v = float(eps), float(resp)
+    # always, as the service does when a job starts: the raw step is measured on the sample
+    # even when eps and the response are given
+    est = estimate_job(
+        lambda t: arr[:, t.y0 : t.y1, t.x0 : t.x1],
+        L,
+        obs,
+        m,
+        (H, W),
+        eps=eps,
+        response=resp,
+        drop_bright=defaults.drop_bright if drop_bright is None else drop_bright,
+        model=model,
+    )
+    eps_v, resp_v, obs = est.eps, est.response, obs.with_quantum(est.quantum)
     th = make_thresholds(
         k,
         eps_v,

@@ -107,7 +107,7 @@ def compute_tile(
     worker is free for other tiles. With ``time_limit`` (seconds), a tile still computing after
     that long stops the same way and answers "overtime" (the job then fails, naming the tile)."""
     params = store.params
-    if params.eps is None or params.digest() != params_hash:
+    if not params.resolved or params.digest() != params_hash:
         raise StoreError(f"job parameters changed since tile {tile_index} was scheduled; restart the job")
     t = store.tiles()[tile_index]
     token = params.token()

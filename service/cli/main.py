@@ -223,12 +223,17 @@ def cmd_run(args: argparse.Namespace) -> int:
     solving = (rec.finished_at or 0) - (rec.started_at or 0)
     print(
         f"done: {rec.pixels_done} masked pixels in {time.monotonic() - STARTED:.1f} s "
-        f"({solving:.1f} s solving), eps={rec.eps:.4g}, "
+        f"({solving:.1f} s solving), eps={rec.eps:.4g}{raw_step_words(rec.raw_step)}, "
         f"tile={store.params.tile}; {shares(rec)}; results in {store.path} (previews/ has PNGs)"
     )
     _warn(rec)
     _report_ground_truth(args, store.path)
     return 0
+
+
+def raw_step_words(quantum: int | None) -> str:
+    """' (raw values in steps of 16)' where the images do not use every value of their type."""
+    return f" (raw values in steps of {quantum})" if quantum and quantum > 1 else ""
 
 
 def shares(rec: Any) -> str:

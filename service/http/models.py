@@ -118,6 +118,12 @@ class JobStatus(BaseModel):
     solved_pixels: int = 0
     pixel_rate: float | None = None
     eps: float | None = Field(None, description="the eps used (known once eps=auto is estimated)")
+    raw_step: int | None = Field(
+        None,
+        description="the step of the images' raw values, measured when the job starts: 1 for data "
+        "using every value, 16 for 12-bit data shifted into 16-bit files, 257 for 8-bit data "
+        "scaled to 16 bits; it sets the quantisation error and the saturation level",
+    )
     progress: Progress
     warnings: list[str] = Field(default_factory=list, description="what a user must hear about the result")
     calibration: list[str] = Field(

@@ -61,7 +61,7 @@ class JobRun:
     @property
     def needs_eps(self) -> bool:
         """Whether eps (and the response) are still "auto": estimate them, then :meth:`use_eps`."""
-        return self.store.params.eps is None
+        return not self.store.params.resolved
 
     def use_eps(self, estimate: float | Estimate) -> JobParams:
         """Record the estimate in the store's parameters (checked against the others)."""
@@ -72,6 +72,7 @@ class JobRun:
         (a tile without masked pixels is never one: :meth:`JobStore.done_grid`)."""
         params = self.store.params
         self.rec.eps = params.eps
+        self.rec.raw_step = params.quantum
         count_finished(self.rec, self.store)
         done = self.store.done_grid().ravel()  # tiles without masked pixels count as done
         return self.store.by_masked_pixels(t for t in self.store.tiles() if not done[t.index])

@@ -132,7 +132,7 @@ def _resumable(
         # "auto" resumes on the grid the job began with: the rule may have changed since
         # (or the mask's balance differs), and finished tiles are kept only on that grid
         params = replace(params, tile=old.tile)
-    comparable = old.unresolved() if params.eps is None else old
+    comparable = old.unresolved() if not params.resolved else old
     if comparable != params:
         # never a quiet replacement: a sweep into one folder would keep only its last run
         raise ConflictError(
@@ -172,7 +172,13 @@ def store_images(
 def param_changes(old: JobParams, new: JobParams) -> str:
     """'eps 1.0 -> 2.0, tile 64 -> 32': the options that differ, as the user gives them."""
     a, b = old.to_json(), new.to_json()
-    shown = {"eps_request": "eps", "response_request": "response", "eps": None, "response": None}
+    shown = {
+        "eps_request": "eps",
+        "response_request": "response",
+        "eps": None,
+        "response": None,
+        "quantum": None,
+    }
     return (
         ", ".join(
             f"{shown.get(k, k)} {a[k]} -> {b[k]}"
@@ -295,7 +301,7 @@ async def _ingest_and_run(
         if finished_before(store):
             return store, None
         reader = sample.reader(store)
-        if reader is not None and store.params.eps is None:
+        if reader is not None and not store.params.resolved:
             # while the cluster starts, from the windows kept: no task reading them back from the store
             t0 = time.perf_counter()
             await asyncio.to_thread(_estimate_eps, store, reader)
