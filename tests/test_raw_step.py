@@ -13,6 +13,7 @@ import pytest
 
 import maxfs
 from maxfs.service.cli.main import main
+from maxfs.service.cli.verbs import format_status
 from maxfs.storage.datasets import write_npy_folder
 from maxfs.storage.observations import QUANTUM_EVIDENCE, ObservationModel, raw_quantum
 from maxfs.storage.params import JobParams
@@ -116,3 +117,9 @@ def test_records_made_before_the_step_keep_their_digest() -> None:
     assert p.quantum == 1 and p.resolved and p.digest() == then
     assert JobParams.from_json(old | {"quantum": 16}).digest() != then
     assert not JobParams.build(eps=2.0).resolved  # a new job measures the step when it starts
+
+
+@pytest.mark.parametrize(("step", "shown"), [(None, False), (1, False), (16, True)])
+def test_maxfs_status_names_a_raw_step_above_one(step: int | None, shown: bool) -> None:
+    st = {"id": "j", "state": "done", "progress": {}, "eps": 300.0, "raw_step": step}
+    assert ("eps 300 (raw values in steps of 16)" in format_status(st)) is shown

@@ -221,6 +221,8 @@ def cmd_run(args: argparse.Namespace) -> int:
         print(f"maxfs: job {rec.state.value}: {rec.error or ''}".rstrip(": "), file=sys.stderr)
         return EXIT_NOT_DONE
     solving = (rec.finished_at or 0) - (rec.started_at or 0)
+    from maxfs.service.cli.verbs import raw_step_words
+
     print(
         f"done: {rec.pixels_done} masked pixels in {time.monotonic() - STARTED:.1f} s "
         f"({solving:.1f} s solving), eps={rec.eps:.4g}{raw_step_words(rec.raw_step)}, "
@@ -229,11 +231,6 @@ def cmd_run(args: argparse.Namespace) -> int:
     _warn(rec)
     _report_ground_truth(args, store.path)
     return 0
-
-
-def raw_step_words(quantum: int | None) -> str:
-    """' (raw values in steps of 16)' where the images do not use every value of their type."""
-    return f" (raw values in steps of {quantum})" if quantum and quantum > 1 else ""
 
 
 def shares(rec: Any) -> str:

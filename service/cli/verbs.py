@@ -44,13 +44,18 @@ def format_status(st: dict[str, Any]) -> str:
             shares += " but calibration suspect (see the warnings)"
         parts.append(shares)
     if st.get("eps") is not None:
-        parts.append(f"eps {st['eps']:.4g}")
+        parts.append(f"eps {st['eps']:.4g}{raw_step_words(st.get('raw_step'))}")
     line = "  ".join(parts)
     if st.get("error"):
         line += f"\n  error: {st['error']}"
     for w in st.get("warnings") or ():
         line += f"\n  warning: {w}"
     return line
+
+
+def raw_step_words(step: int | None) -> str:
+    """' (raw values in steps of 16)' where the images do not use every value of their type."""
+    return f" (raw values in steps of {step})" if step and step > 1 else ""
 
 
 def share_words(solved: float | None, certified: float | None, unfinished: int, total: int) -> str:
