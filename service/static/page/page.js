@@ -223,6 +223,7 @@ function renderDetail() {
     ["Solved", pct(p.solved_share)],
     ["Certified", pct(p.certified_share) + suspect(job)],
     ["eps", job.eps === null || job.eps === undefined ? "–" : job.eps.toPrecision(4)],
+    ["Raw step", job.raw_step ? String(job.raw_step) : "–"],
     ["Created", when(job.created_at)],
     ["Started", when(job.started_at)],
     ["Finished", when(job.finished_at)],
