@@ -112,13 +112,13 @@ def open_result(folder: str | Path) -> Result:
     present = set(store.output_names())
     arrays = {o.name: store.read_output(o.name) if o.name in present else None for o in OUTPUT_TABLE}
     try:
-        rec = load_record(store.path)
-        eps, response, warnings = rec.eps, getattr(rec, "response", None), rec.warnings()
+        warnings = load_record(store.path).warnings()
     except MaxfsError:
-        eps, response, warnings = None, None, []
-    return Result(
-        arrays, eps=eps, response=response, params=store.params.to_json(), warnings=warnings, path=store.path
-    )
+        warnings = []
+    # what the tiles were solved with: the store's parameters (the record keeps no response)
+    p = store.params
+    eps, response = (p.eps, p.response) if p.resolved else (None, None)
+    return Result(arrays, eps=eps, response=response, params=p.to_json(), warnings=warnings, path=store.path)
 
 
 def solve_folder(
@@ -181,7 +181,8 @@ def solve(
     ----------
     images
         (k, H, W) grey or (k, H, W, 3) colour; uint8 and uint16 are raw sensor values (a value
-        at the dtype's maximum is saturated), floats are used as float32.
+        at the top of the data's grid is saturated: the dtype's maximum, or its largest multiple
+        of the raw step), floats are used as float32.
     lights
         (k, 3) unit light directions (x right, y up, z toward the camera).
     mask

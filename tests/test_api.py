@@ -38,6 +38,7 @@ def test_solve_folder_is_bit_identical_to_maxfs_run(folder, tmp_path: Path) -> N
         np.testing.assert_array_equal(getattr(r, name), getattr(cli, name), err_msg=name)
     assert r.path is None and cli.path is not None
     assert r.eps == cli.eps and r.params == cli.params
+    assert cli.response == cli.params["response"] is not None and r.response == cli.response
     err = synthetic.angular_error_deg(r.normal, sc.normals)[sc.mask]
     assert np.nanmean(err) < 5
     assert r.N is r.normal and r.normal.shape == (40, 40, 3) and r.inliers.shape == (12, 40, 40)
