@@ -18,6 +18,10 @@ from maxfs.storage.errors import InvalidInputError
 #: data so dark that the sample holds fewer levels than that tell nothing (the 8-bit DiLiGenT
 #: pot1 crop at k = 8 holds 31).
 QUANTUM_EVIDENCE = 8
+#: The step is looked for in this many runs of the values (a stray value spoils one run)...
+QUANTUM_CHUNKS = 64
+#: ...and taken when at most this share of the values is off its grid.
+OFF_GRID = 1e-3
 
 #: Accepted light intensities: relative brightnesses; outside this range dividing the images by
 #: them under- or overflows what the tolerance and the response estimate can represent.
@@ -38,12 +42,11 @@ class ObservationModel:
     channels
         None for grey input, else the number of colour channels.
     dequantize
-        Integer input only: a raw value ``v > 0`` is read as ``v + 0.5``, the middle of
-        the interval ``[v, v + 1)`` it stands for when the sensor (or a conversion such as
-        16 -> 8 bits by ``v >> 8``) truncates. Zero stays zero (a shadow); saturation
-        is decided on the raw value. Measured on the 8-bit DiLiGenT crops: mean error
-        cat 7.1 -> 6.5, pot1 9.3 -> 7.7 (bench/accuracy.py). With ``quantum`` q the
-        interval is ``[v, v + q)`` and ``v`` is read as ``v + q / 2``.
+        Integer input only: a raw value ``v > 0`` is read as ``v + q / 2`` (``q`` =
+        ``quantum``), the middle of the interval ``[v, v + q)`` it stands for when the
+        sensor (or a conversion such as 16 -> 8 bits by ``v >> 8``) truncates. Zero stays
+        zero (a shadow); saturation is decided on the raw value. Measured on the 8-bit
+        DiLiGenT crops: mean error cat 7.1 -> 6.5, pot1 9.3 -> 7.7 (bench/accuracy.py).
     quantum
         Integer input only: the raw values' step (:func:`raw_quantum`), 1 for data that
         use every value of the dtype; 16 for 12-bit data shifted into 16 bits, 256 for
@@ -168,23 +171,37 @@ class ObservationModel:
 
 
 def raw_quantum(raw: NDArray) -> int:
-    """The step of integer raw values: their greatest common divisor, or 1.
+    """The step of integer raw values: the grid nearly all of them lie on, or 1.
 
     Cameras with 10, 12 or 14 bits often store them in 16-bit files shifted left (every
     value a multiple of 64, 16 or 4), and 8-bit data converted to 16 bits are multiples of
     256 (shifted) or 257 (scaled). Such a stack quantises as coarsely as its source: its
     truncation error is up to a whole step, not one unit, and it saturates at the grid's
-    top (65520 for 12 bits shifted). A step above 1 needs :data:`QUANTUM_EVIDENCE` distinct
-    non-zero values sharing it; float input, or too little evidence, gives 1.
+    top (65520 for 12 bits shifted).
+
+    Zeros and values at the dtype's maximum say nothing about the grid (a converter may
+    write clipped highlights as 65535) and are left out. The step is the greatest common
+    divisor of most of :data:`QUANTUM_CHUNKS` runs of the rest, taken when at least
+    ``1 - OFF_GRID`` of the values lie on it (a hot pixel or a stray value does not turn it
+    off; one image of 96 left unshifted does) and :data:`QUANTUM_EVIDENCE` distinct values
+    share it. Float input, or too little evidence, gives 1.
     """
     a = np.asarray(raw)
     if not np.issubdtype(a.dtype, np.integer):
         return 1
-    q = int(np.gcd.reduce(a, axis=None)) if a.size else 0
+    v = a.ravel()
+    v = v[(v != 0) & (v != np.iinfo(a.dtype).max)]
+    if v.size == 0:
+        return 1
+    gcds = [int(np.gcd.reduce(c)) for c in np.array_split(v, min(QUANTUM_CHUNKS, v.size))]
+    values, counts = np.unique(gcds, return_counts=True)
+    q = int(values[np.argmax(counts)])  # the most common; ties to the smaller step
     if q <= 1:
         return 1
-    distinct = np.unique(a)
-    return q if int(np.count_nonzero(distinct)) >= QUANTUM_EVIDENCE else 1
+    on = v % q == 0
+    if np.count_nonzero(on) < (1.0 - OFF_GRID) * v.size:
+        return 1
+    return q if np.unique(v[on]).size >= QUANTUM_EVIDENCE else 1
 
 
 def _pixel_major(vals: NDArray, pixels: NDArray[np.intp] | None = None) -> NDArray:

@@ -344,7 +344,8 @@ SOLVE_OPTIONS: tuple[Option, ...] = (
     Option(
         "saturation",
         "float",
-        "grey values >= this are saturated (integer input is also saturated at its dtype's maximum)",
+        "grey values >= this are saturated (integer input is also saturated at the top of its grid: the "
+        "dtype's maximum, or its largest multiple of the raw step, e.g. 65520 for 12-bit data shifted)",
     ),
     Option(
         "box_factor", "float", f"box on n as a multiple of the brightest value (>= 1; {DEFAULT_BOX_FACTOR:g})"
@@ -364,7 +365,7 @@ SOLVE_OPTIONS: tuple[Option, ...] = (
     Option(
         "drop_bright", "float", "share of each pixel's brightest candidates that are outliers (default 0)"
     ),
-    Option("dequantize", "bool", "integer input: read v > 0 as v + 0.5 (robust: true)"),
+    Option("dequantize", "bool", "integer input: read v > 0 as v + q/2, q the raw step (robust: true)"),
     Option("fallback", "bool", "least squares where Max-FS gives no normal (robust: true)"),
     Option(
         "depth",

@@ -36,6 +36,17 @@ QUANTA = {
     "8-bit, every other value": (BYTES.astype(np.uint8) & 0xFE, 2),
     "signed, shifted": ((LEVELS.astype(np.int16) - 2048) << 2, 4),
     "float": (LEVELS.astype(np.float32) * 16, 1),
+    "12-bit shifted, a hot pixel at 65535": (
+        np.where(np.arange(2400).reshape(6, 20, 20) == 77, 65535, LEVELS << 4),
+        16,
+    ),
+    "12-bit shifted, highlights written as 65535": (np.where(LEVELS > 4000, 65535, LEVELS << 4), 16),
+    "12-bit shifted, one stray value": (
+        np.where(np.arange(2400).reshape(6, 20, 20) == 5, 1001, LEVELS << 4),
+        16,
+    ),
+    "12-bit shifted, one image unshifted": (np.concatenate([LEVELS[:1], LEVELS[1:] << 4]), 1),
+    "12-bit shifted, a black level added": ((LEVELS << 4) + 3, 1),
     "all zero": (np.zeros((6, 4, 4), np.uint16), 1),
     "too few levels to tell": (np.arange(QUANTUM_EVIDENCE - 1, dtype=np.uint16) * 16, 1),
     "just enough levels": (np.arange(QUANTUM_EVIDENCE + 1, dtype=np.uint16) * 16, 16),

@@ -473,7 +473,8 @@ def solve(
     ----------
     images
         (k, H, W) grey or (k, H, W, C) colour. Integer arrays are raw sensor values:
-        a value at the dtype's maximum in any channel is saturated. Float arrays
+        a value at the top of the data's grid (the dtype's maximum, or its largest multiple of
+        the raw step, :func:`storage.observations.raw_quantum`) in any channel is saturated. Float arrays
         are used as they are (see ``saturation``).
     lights
         (k, 3) unit light directions (x right, y up, z toward the camera).
@@ -498,7 +499,7 @@ def solve(
     eps_rel, drop_bright, fallback
         See :class:`worker.problem.Thresholds`.
     dequantize
-        Integer input: read a raw value ``v > 0`` as ``v + 0.5`` (see
+        Integer input: read a raw value ``v > 0`` as ``v + q/2``, ``q`` the raw step (see
         :class:`storage.observations.ObservationModel`).
     """
     arr = np.asarray(images)
