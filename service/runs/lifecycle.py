@@ -60,7 +60,8 @@ class JobRun:
 
     @property
     def needs_eps(self) -> bool:
-        """Whether eps (and the response) are still "auto": estimate them, then :meth:`use_eps`."""
+        """Whether eps (and the response) are still "auto", or the raw step not yet measured (every
+        new job): estimate them, then :meth:`use_eps`."""
         return not self.store.params.resolved
 
     def use_eps(self, estimate: float | Estimate) -> JobParams:
