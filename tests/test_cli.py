@@ -61,7 +61,7 @@ def test_run_uw_object_writes_sane_outputs(tmp_path: Path, obj: str, uw_psm: Pat
         assert (out / "previews" / f"{p}.png").stat().st_size > 1000
     if obj == "cat":  # running again resumes: nothing is recomputed
         store = JobStore.open(out, mode="r")
-        before, n = store.run_counts(), len(store.tiles())
+        before, n = store.run_counts(), store.progress().tiles_total  # as the progress line counts
         r = _maxfs("run", str(uw_psm / obj), "-o", str(out), "--workers", "1")
         assert r.returncode == 0 and f"{n} of {n} tiles already done" in r.stderr
         assert JobStore.open(out, mode="r").run_counts() == before

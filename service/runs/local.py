@@ -96,9 +96,9 @@ def ingest(
             shutil.rmtree(out)
             note = f"replacing {out}: it held a run with other inputs or options and no finished tile"
         else:
-            note = (
-                f"resuming {out}: {int(store.done_grid().sum())} of {len(store.tiles())} tiles already done"
-            )
+            # counted as the progress line counts them: tiles that hold masked pixels
+            c = store.progress()
+            note = f"resuming {out}: {c.tiles_done} of {c.tiles_total} tiles already done"
             try:
                 load_record(out)
             except StoreError:
