@@ -36,9 +36,6 @@ class ObservationModel:
     ----------
     intensities
         (k, C) light intensities per image and channel (C = 1 for grey input).
-    sensor_max
-        For integer input the top of the data's grid: the largest multiple of ``quantum``
-        the dtype holds (a raw value there is saturated); None for float input.
     channels
         None for grey input, else the number of colour channels.
     dequantize
@@ -53,25 +50,31 @@ class ObservationModel:
         8-bit data shifted, 257 for 8-bit data scaled to 16 bits (``v * 257``). It sets
         the dequantisation, the quantisation step (:attr:`step`) and the saturation level,
         so a stack gives the same normals in any container its values fit.
+    dtype_max
+        The dtype's maximum for integer input, None for float input.
     """
 
     intensities: NDArray[np.float64]
-    sensor_max: float | None
     channels: int | None
     dequantize: bool = False
     quantum: int = 1
-    #: the dtype's maximum for integer input (:meth:`with_quantum` puts the grid's top below it)
     dtype_max: int | None = None
 
     @property
+    def sensor_max(self) -> float | None:
+        """For integer input the top of the data's grid, the largest multiple of ``quantum``
+        the dtype holds (a raw value there is saturated); None for float input."""
+        return None if self.dtype_max is None else float(self.dtype_max // self.quantum * self.quantum)
+
+    @property
     def integer_valued(self) -> bool:
-        return self.sensor_max is not None
+        return self.dtype_max is not None
 
     @property
     def step(self) -> float | None:
         """One raw step in grey units (``quantum`` times the median over images of
         ``mean_c 1/intensity``), None for float input: the scale of the quantisation error."""
-        if self.sensor_max is None:
+        if self.dtype_max is None:
             return None
         return self.quantum * float(np.median((1.0 / self.intensities).mean(axis=1)))
 
@@ -117,14 +120,12 @@ class ObservationModel:
             )
         dt = np.dtype(dtype)
         if np.issubdtype(dt, np.integer):
-            top = int(np.iinfo(dt).max)
-            sensor_max: float | None = float(top)
+            top: int | None = int(np.iinfo(dt).max)
         elif np.issubdtype(dt, np.floating):
-            sensor_max, top = None, 0
+            top = None
         else:
             raise InvalidInputError(f"images must be integer or float, got dtype {dt}")
-        model = cls(inten, sensor_max, channels, bool(dequantize) and sensor_max is not None, 1, None)
-        return model if sensor_max is None else replace(model, dtype_max=top).with_quantum(quantum)
+        return cls(inten, channels, bool(dequantize) and top is not None, 1, top).with_quantum(quantum)
 
     def with_quantum(self, quantum: int) -> ObservationModel:
         """This model for raw values on a grid of step ``quantum`` (float input: itself)."""
@@ -133,7 +134,7 @@ class ObservationModel:
         q = int(quantum)
         if not 1 <= q <= self.dtype_max:
             raise InvalidInputError(f"the raw step must be between 1 and {self.dtype_max}, got {q}")
-        return replace(self, quantum=q, sensor_max=float(self.dtype_max // q * q))
+        return replace(self, quantum=q)
 
     def prepare(
         self, raw: NDArray, pixels: NDArray[np.intp] | None = None
@@ -157,16 +158,17 @@ class ObservationModel:
         f /= self.intensities[None, :, :]
         # grey input: the one channel itself (a view; x / 1 is x); colour: grey is a new array
         grey = f.reshape(f.shape[:2]) if self.channels is None else _channel_mean(f)
-        if self.sensor_max is None:
+        top = self.sensor_max
+        if top is None:
             # numpy's mean sums from +0.0, so it never returned -0.0; only float input has any
             grey += 0.0
         rgb = f if self.channels is not None else None
-        if self.sensor_max is None:
+        if top is None:
             saturated = np.zeros(grey.shape, dtype=bool)
         else:
-            saturated = v[..., 0] >= self.sensor_max
+            saturated = v[..., 0] >= top
             for c in range(1, C):
-                saturated |= v[..., c] >= self.sensor_max
+                saturated |= v[..., c] >= top
         return grey, rgb, saturated
 
 
